@@ -1,0 +1,145 @@
+"""Config resolvers and validation.
+
+Importing this module registers the OmegaConf resolvers the configs in ``conf/`` use.
+:func:`validate` checks every value a user can type before any work starts and raises
+:class:`~mrcert.errors.ConfigError` naming the key, the value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import secrets
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
+
+from mrcert.errors import ConfigError
+from mrcert.geometry import AXES
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+_FALLBACK_UID = secrets.token_hex(3)
+
+
+def run_uid() -> str:
+    """Suffix that makes run directories unique; one per launch, shared by its jobs."""
+    return os.environ.get("MRCERT_RUN_UID", _FALLBACK_UID)
+
+
+def new_launch_uid() -> None:
+    """Draw a fresh launch suffix; exported so that launcher workers inherit it."""
+    os.environ["MRCERT_RUN_UID"] = secrets.token_hex(3)
+
+
+def _task_help() -> str:
+    from mrcert.tasks import TASKS
+
+    return "\n".join(f"  {name:<10} {task.summary}" for name, task in TASKS.items())
+
+
+OmegaConf.register_new_resolver("mrcert_uid", run_uid, replace=True)
+OmegaConf.register_new_resolver("mrcert_abspath", lambda p: os.path.abspath(str(p)), replace=True)
+OmegaConf.register_new_resolver("mrcert_task_help", _task_help, replace=True)
+
+
+# --- validation -------------------------------------------------------------------------
+
+Rule = tuple[Callable[[Any], bool], str]
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _positive(v: Any) -> bool:
+    return _number(v) and v > 0
+
+
+def _positive_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 1
+
+
+def _axis(v: Any) -> bool:
+    return v in AXES
+
+
+RULES: dict[str, Rule] = {
+    # Rules by the last component of a key, so that every group's keys of that name obey them.
+    "sigma": (_positive, "a finite number > 0"),
+    "radius": (lambda v: _number(v) and v >= 0, "a finite number >= 0"),
+    "radius_step": (_positive, "a finite number > 0"),
+    "alpha": (lambda v: _number(v) and 0 < v < 1, "a number strictly between 0 and 1"),
+    "height": (_positive_int, "an integer >= 1"),
+    "width": (_positive_int, "an integer >= 1"),
+    "fx": (_positive, "a finite number > 0"),
+    "fy": (_positive, "a finite number > 0"),
+    "cx": (_number, "a finite number"),
+    "cy": (_number, "a finite number"),
+    "density": (_positive, "a finite number > 0 (metres)"),
+    "num": (_positive_int, "an integer >= 1"),
+    "k": (_positive_int, "an integer >= 1"),
+    "axis": (_axis, f"one of {', '.join(AXES)}"),
+    "axes": (
+        lambda v: isinstance(v, list) and len(v) > 0 and all(_axis(a) for a in v),
+        f"a non-empty list of axes from {', '.join(AXES)}",
+    ),
+    "backend": (lambda v: v in ("auto", "numba", "torch"), "one of auto, numba, torch"),
+    "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+}
+
+
+def _leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """(dotted key, value) of every leaf; a list named ``axes`` counts as one leaf."""
+    if isinstance(node, dict):
+        children = [(f"{prefix}.{k}" if prefix else str(k), v) for k, v in node.items()]
+    else:
+        children = [(f"{prefix}[{i}]", v) for i, v in enumerate(node)]
+    for path, value in children:
+        if isinstance(value, (dict, list)) and not path.endswith(".axes"):
+            yield from _leaves(value, path)
+        else:
+            yield path, value
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded)."""
+    from mrcert.tasks import TASKS
+
+    try:
+        data = plain(cfg, throw_on_missing=True)
+    except MissingMandatoryValue as exc:
+        raise ConfigError(exc.full_key, "???", "a value must be given") from None
+    task = data.get("task", {}).get("name")
+    if task not in TASKS:
+        raise ConfigError("task.name", task, f"one of {', '.join(TASKS)}")
+    for path, value in _leaves(data):
+        rule = RULES.get(path.rsplit(".", 1)[-1])
+        if rule is not None and value is not None and not rule[0](value):
+            raise ConfigError(path, value, rule[1])
+    extent = data.get("task", {}).get("extent") or {}
+    for axis, value in extent.items():
+        if axis not in AXES or not _number(value) or value < 0:
+            raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")
+    device = data.get("device", "auto")
+    if not (
+        device in ("auto", "cpu", "cuda")
+        or (isinstance(device, str) and device.startswith("cuda:") and device[5:].isdigit())
+    ):
+        raise ConfigError("device", device, "auto, cpu, cuda or cuda:N")
+
+
+def plain(cfg: DictConfig, throw_on_missing: bool = False) -> dict[str, Any]:
+    """The config resolved into plain dicts and lists, without Hydra's own ``hydra`` node."""
+    return {
+        key: OmegaConf.to_container(value, resolve=True, throw_on_missing=throw_on_missing)
+        if OmegaConf.is_config(value)
+        else value
+        for key, value in ((k, cfg[k]) for k in cfg if k != "hydra")
+    }
+
+
+def to_yaml(cfg: DictConfig) -> str:
+    """The config resolved, as YAML (hydra node excluded)."""
+    return OmegaConf.to_yaml(OmegaConf.create(plain(cfg)))

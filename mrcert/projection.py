@@ -1,0 +1,190 @@
+"""The projection ``O(V, alpha)`` of a coloured point cloud under camera motions (paper Def. 2).
+
+Rule (SPEC section 2): a point with camera coordinates ``P`` is moved to ``P' = R^T (P - t)``,
+lands on column ``u = floor(fx X'/Z' + cx)`` and row ``v = floor(fy Y'/Z' + cy)`` when
+``Z' > 0``, ``0 <= u < W`` and ``0 <= v < H``, and each pixel takes the colour of its point of
+minimum depth ``Z'``; among equal depths the lowest point index wins. Pixels no point hits
+take ``background``.
+
+Two back ends compute exactly the same float64 operations in the same order, so their
+images are identical to the bit:
+
+* ``numba``: a compiled z-buffer kernel, parallel over motions (CPU tensors, the default there);
+* ``torch``: scatter-min over pixels, chunked over motions to bound memory (any device,
+  the default on CUDA).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numba
+import numpy as np
+import torch
+
+from mrcert.geometry import rotvec_to_matrix
+
+# OpenMP first: thread-safe, and skips probing an old system TBB (which only warns).
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
+Backend = Literal["auto", "numba", "torch"]
+
+DEFAULT_CHUNK_ELEMENTS = 1 << 22
+"""Upper bound on motions x points held at once by the torch back end (about 32 MB per buffer)."""
+
+
+def project(
+    points: torch.Tensor,
+    colors: torch.Tensor,
+    K: torch.Tensor,
+    motions: torch.Tensor,
+    height: int,
+    width: int,
+    background: float = 1.0,
+    *,
+    backend: Backend = "auto",
+    chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render ``points`` (N, 3, reference camera frame) with ``colors`` (N, C) under ``motions``.
+
+    Args:
+        points: (N, 3) xyz in the reference camera frame (metres).
+        colors: (N, C) values in [0, 1].
+        K: (3, 3) intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``.
+        motions: (B, 6) ``(tx, ty, tz, rx, ry, rz)`` camera motions (SPEC section 1).
+        height, width: image size H x W.
+        background: value of pixels that no point hits.
+        backend: ``"numba"``, ``"torch"`` or ``"auto"`` (numba on CPU, torch elsewhere).
+        chunk_elements: torch back end only: at most this many motions x points at once.
+
+    Returns:
+        ``images`` (B, C, H, W) in the dtype of ``colors`` (float32 for integer colours) and
+        ``depth`` (B, H, W) float64 with ``+inf`` where no point lands; both on the device of
+        ``points``.
+    """
+    points = torch.as_tensor(points)
+    device = points.device
+    colors = torch.as_tensor(colors, device=device)
+    motions = torch.as_tensor(motions, dtype=torch.float64, device=device)
+    K = torch.as_tensor(K, dtype=torch.float64)
+    _check_inputs(points, colors, K, motions, height, width)
+    if backend == "auto":
+        backend = "numba" if device.type == "cpu" else "torch"
+    if backend not in ("numba", "torch"):
+        raise ValueError(f"unknown projection backend {backend!r}; allowed: auto, numba, torch")
+
+    xyz = points.to(torch.float64)
+    R = rotvec_to_matrix(motions[:, 3:])
+    t = motions[:, :3]
+    intr = tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    if backend == "numba":
+        if device.type != "cpu":
+            raise ValueError(f"the numba projection backend needs CPU tensors, got device {device}")
+        winner, depth = _zbuffer_numba(xyz, R, t, intr, height, width)
+    else:
+        winner, depth = _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements)
+    images = _gather_colors(colors, winner, background, height, width)
+    return images, depth.view(-1, height, width)
+
+
+def _check_inputs(points, colors, K, motions, height, width) -> None:
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {tuple(points.shape)}")
+    if colors.ndim != 2 or colors.shape[0] != points.shape[0]:
+        raise ValueError(f"colors must have shape (N, C) with N = {points.shape[0]}, got {tuple(colors.shape)}")
+    if K.shape != (3, 3):
+        raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
+    if motions.ndim != 2 or motions.shape[1] != 6:
+        raise ValueError(f"motions must have shape (B, 6), got {tuple(motions.shape)}")
+    for name, value in (("height", height), ("width", width)):
+        if int(value) != value or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+def _gather_colors(colors, winner, background, height, width) -> torch.Tensor:
+    """Images (B, C, H, W) from per-pixel winning point indices (-1 = background)."""
+    dtype = colors.dtype if colors.is_floating_point() else torch.float32
+    n, c = colors.shape
+    table = torch.cat([colors.to(dtype), torch.full((1, c), background, dtype=dtype, device=colors.device)])
+    idx = torch.where(winner < 0, torch.full_like(winner, n), winner)
+    return table[idx].permute(0, 2, 1).reshape(-1, c, height, width).contiguous()
+
+
+def _camera_coordinate(r, j, dx, dy, dz):
+    """Coordinate ``j`` of ``R^T (P - t)``, summed left to right exactly like the kernel."""
+    return r[:, 0, j : j + 1] * dx + r[:, 1, j : j + 1] * dy + r[:, 2, j : j + 1] * dz
+
+
+def _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements):
+    """Per-pixel winner index and depth, (B, H*W) each, by scatter-min; chunked over motions."""
+    fx, fy, cx, cy = intr
+    n = xyz.shape[0]
+    hw = height * width
+    X, Y, Z = (c[None, :] for c in xyz.unbind(1))
+    point_index = torch.arange(n, device=xyz.device)[None, :]
+    winners, depths = [], []
+    step = max(1, chunk_elements // max(n, 1))
+    for start in range(0, R.shape[0], step):
+        r = R[start : start + step]
+        tt = t[start : start + step]
+        b = r.shape[0]
+        dx, dy, dz = X - tt[:, 0:1], Y - tt[:, 1:2], Z - tt[:, 2:3]
+        zc = _camera_coordinate(r, 2, dx, dy, dz)
+        uf = fx * (_camera_coordinate(r, 0, dx, dy, dz) / zc) + cx
+        vf = fy * (_camera_coordinate(r, 1, dx, dy, dz) / zc) + cy
+        valid = (zc > 0) & (uf >= 0) & (uf < width) & (vf >= 0) & (vf < height)
+        pix = torch.floor(vf).clamp(0, height - 1).long() * width + torch.floor(uf).clamp(0, width - 1).long()
+        offset = torch.arange(b, device=xyz.device)[:, None] * hw
+        dump = b * hw  # one spare bin collects every invalid point
+        lin = torch.where(valid, pix + offset, torch.full_like(pix, dump)).reshape(-1)
+        zflat = zc.reshape(-1)
+        zmin = torch.full((dump + 1,), torch.inf, dtype=torch.float64, device=xyz.device)
+        zmin.scatter_reduce_(0, lin, zflat, reduce="amin")
+        is_min = valid.reshape(-1) & (zflat == zmin[lin])
+        cand = torch.where(is_min, point_index.expand(b, n).reshape(-1), torch.full_like(lin, n))
+        win = torch.full((dump + 1,), n, dtype=torch.long, device=xyz.device)
+        win.scatter_reduce_(0, lin, cand, reduce="amin")
+        win = win[:dump].view(b, hw)
+        winners.append(torch.where(win == n, torch.full_like(win, -1), win))
+        depths.append(zmin[:dump].view(b, hw))
+    return torch.cat(winners), torch.cat(depths)
+
+
+def _zbuffer_numba(xyz, R, t, intr, height, width):
+    fx, fy, cx, cy = intr
+    pts = np.ascontiguousarray(xyz.numpy().T)  # (3, N): one contiguous array per coordinate
+    b = R.shape[0]
+    winner = np.full((b, height * width), -1, dtype=np.int64)
+    depth = np.full((b, height * width), np.inf, dtype=np.float64)
+    if b:
+        _zbuffer_kernel(pts[0], pts[1], pts[2], R.numpy(), t.numpy(), fx, fy, cx, cy, height, width, winner, depth)
+    return torch.from_numpy(winner), torch.from_numpy(depth)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _zbuffer_kernel(X, Y, Z, R, t, fx, fy, cx, cy, height, width, winner, depth):  # pragma: no cover - compiled
+    n = X.shape[0]
+    for b in numba.prange(R.shape[0]):
+        r00, r01, r02 = R[b, 0, 0], R[b, 0, 1], R[b, 0, 2]
+        r10, r11, r12 = R[b, 1, 0], R[b, 1, 1], R[b, 1, 2]
+        r20, r21, r22 = R[b, 2, 0], R[b, 2, 1], R[b, 2, 2]
+        tx, ty, tz = t[b, 0], t[b, 1], t[b, 2]
+        zbuf = depth[b]
+        wbuf = winner[b]
+        for i in range(n):
+            dx = X[i] - tx
+            dy = Y[i] - ty
+            dz = Z[i] - tz
+            zc = r02 * dx + r12 * dy + r22 * dz
+            if not zc > 0.0:
+                continue
+            uf = fx * ((r00 * dx + r10 * dy + r20 * dz) / zc) + cx
+            if not (uf >= 0.0 and uf < width):
+                continue
+            vf = fy * ((r01 * dx + r11 * dy + r21 * dz) / zc) + cy
+            if not (vf >= 0.0 and vf < height):
+                continue
+            p = int(np.floor(vf)) * width + int(np.floor(uf))
+            if zc < zbuf[p]:
+                zbuf[p] = zc
+                wbuf[p] = i

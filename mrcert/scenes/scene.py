@@ -1,0 +1,77 @@
+"""A coloured point cloud in a reference camera frame, with the intrinsics to render it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from mrcert.errors import MrcertError
+from mrcert.projection import Backend, project
+
+
+@dataclass
+class Scene:
+    """Points (N, 3) in the reference camera frame, colours (N, C) in [0, 1], and a camera."""
+
+    points: torch.Tensor
+    colors: torch.Tensor
+    K: torch.Tensor
+    height: int
+    width: int
+    background: float = 1.0
+
+    def render(self, motions, backend: Backend = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+        """Images (B, C, H, W) and depth (B, H, W) under camera motions (B, 6)."""
+        motions = torch.as_tensor(motions, dtype=torch.float64, device=self.points.device)
+        return project(
+            self.points, self.colors, self.K, motions, self.height, self.width, self.background, backend=backend
+        )
+
+
+def intrinsics(image: DictConfig) -> torch.Tensor:
+    return torch.tensor([[image.fx, 0.0, image.cx], [0.0, image.fy, image.cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """xyz (N, 3) float64 and RGB (N, 3) float32 in [0, 1] of a file open3d reads."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise MrcertError(f"point cloud file {str(path)!r} does not exist")
+    if path.suffix.lower() not in (".ply", ".pcd"):
+        raise MrcertError(f"point cloud file {str(path)!r} has suffix {path.suffix!r}; allowed: .ply, .pcd")
+    pcd = o3d.io.read_point_cloud(str(path))
+    points = np.asarray(pcd.points, dtype=np.float64)
+    if len(points) == 0:
+        raise MrcertError(f"point cloud file {str(path)!r} has no points (or open3d cannot parse it)")
+    if not np.isfinite(points).all():
+        raise MrcertError(f"point cloud file {str(path)!r} has NaN or infinite coordinates")
+    colors = (
+        np.asarray(pcd.colors, dtype=np.float32) if pcd.has_colors() else np.full((len(points), 3), 0.5, np.float32)
+    )
+    return points, colors
+
+
+def load_scene(data: DictConfig, device: torch.device | str = "cpu") -> Scene:
+    """The scene a ``data`` config names: the built-in test scene or a point cloud file."""
+    if data.source == "builtin":
+        from mrcert.scenes import testscene
+
+        points, colors = testscene.build(data.density)
+    elif data.source == "file":
+        points, colors = read_point_cloud(data.path)
+    else:
+        raise MrcertError(f"data.source={data.source!r} is not allowed: builtin or file")
+    return Scene(
+        torch.from_numpy(points).to(device),
+        torch.from_numpy(np.ascontiguousarray(colors)).to(device),
+        intrinsics(data.image),
+        int(data.image.height),
+        int(data.image.width),
+        float(data.image.background),
+    )

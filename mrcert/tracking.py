@@ -1,0 +1,199 @@
+"""MLflow tracking: one MLflow run per task run, children of one parent per multirun.
+
+The parent run, the experiment and (for SQLite) the schema are created once, by
+:class:`MultirunParentCallback` before any job starts, and the ids reach the jobs through a
+file in the sweep directory -- never by jobs racing to create them (SPEC section 6).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from mrcert.errors import MrcertError
+
+log = logging.getLogger(__name__)
+
+PARENT_FILE = "mlflow_parent.json"
+MAX_PARAM_CHARS = 6000
+
+
+def flatten(data: Any, prefix: str = "") -> dict[str, str]:
+    """Nested dicts and lists as ``{"a.b.0": "value"}`` strings, for MLflow params."""
+    if isinstance(data, dict):
+        items = data.items()
+    elif isinstance(data, list):
+        items = enumerate(data)
+    else:
+        return {prefix: str(data)[:MAX_PARAM_CHARS]}
+    out: dict[str, str] = {}
+    for key, value in items:
+        out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    if not out and prefix:  # an empty dict or list still records that it was empty
+        out[prefix] = str(data)
+    return out
+
+
+def _mlflow(tracking: DictConfig):
+    """The mlflow module pointed at the configured store; makes the SQLite folder."""
+    import mlflow
+
+    uri = str(tracking.uri)
+    if uri.startswith("sqlite:///"):
+        db = Path(uri[len("sqlite:///") :])
+        try:
+            db.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise MrcertError(f"cannot create the MLflow store folder {db.parent}: {exc}") from None
+        if not os.access(db.parent, os.W_OK):
+            raise MrcertError(f"the MLflow store folder {db.parent} is not writable; set tracking.uri elsewhere")
+    mlflow.set_tracking_uri(uri)
+    return mlflow
+
+
+def ensure_experiment(tracking: DictConfig) -> str:
+    """Id of the configured experiment, created (with its artifact location) if missing."""
+    mlflow = _mlflow(tracking)
+    client = mlflow.MlflowClient()
+    try:
+        exp = client.get_experiment_by_name(tracking.experiment)
+    except Exception as exc:  # unreachable server, corrupt store
+        raise MrcertError(f"cannot reach the MLflow store at {tracking.uri}: {exc}") from None
+    if exp is not None:
+        return exp.experiment_id
+    location = tracking.artifact_location
+    if location:
+        Path(location).mkdir(parents=True, exist_ok=True)
+        location = Path(location).as_uri()
+    return client.create_experiment(tracking.experiment, artifact_location=location)
+
+
+def run_tags(cfg: DictConfig) -> dict[str, str]:
+    """Tags that tables and look-ups filter on."""
+    select = lambda key: OmegaConf.select(cfg, key, default=None)  # noqa: E731
+    tags = {
+        "mrcert.task": select("task.name"),
+        "mrcert.axis": select("motion.axis"),
+        "mrcert.model": select("model.arch"),
+        "mrcert.dataset": select("data.name"),
+    }
+    return {k: str(v) for k, v in tags.items() if v is not None}
+
+
+@dataclass
+class Tracker:
+    """What a task logs through; does nothing when tracking is off."""
+
+    run_id: str | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return self.run_id is not None
+
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        if self.enabled:
+            import mlflow
+
+            mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
+
+    def log_artifact(self, path: Path | str, artifact_path: str | None = None) -> None:
+        if self.enabled:
+            import mlflow
+
+            path = Path(path)
+            if path.is_dir():
+                mlflow.log_artifacts(str(path), artifact_path=artifact_path or path.name)
+            else:
+                mlflow.log_artifact(str(path), artifact_path=artifact_path)
+
+
+def _parent_info() -> dict[str, str] | None:
+    """``{"run_id", "experiment_id"}`` of the sweep's parent run when this job is in a multirun."""
+    try:
+        hc = HydraConfig.get()
+    except ValueError:
+        return None
+    path = Path(hc.sweep.dir) / PARENT_FILE
+    if hc.mode != RunMode.MULTIRUN or not path.exists():
+        return None
+    return json.loads(path.read_text())
+
+
+def fail_parent(cfg: DictConfig) -> None:
+    """Mark the multirun's parent run FAILED (called when one of its jobs fails)."""
+    info = _parent_info()
+    if cfg.tracking.enabled and info is not None:
+        _mlflow(cfg.tracking).MlflowClient().set_terminated(info["run_id"], "FAILED")
+
+
+@contextmanager
+def task_run(cfg: DictConfig, output_dir: Path) -> Iterator[Tracker]:
+    """An MLflow run around one task: params, tags and the resolved config on entry,
+    status FINISHED or FAILED on exit; a child of the sweep's parent run in a multirun."""
+    from mrcert.config import plain, to_yaml
+
+    output_dir.mkdir(parents=True, exist_ok=True)
+    resolved = output_dir / "resolved_config.yaml"
+    resolved.write_text(to_yaml(cfg))
+    if not cfg.tracking.enabled:
+        yield Tracker()
+        return
+    info = _parent_info() or {}
+    parent_id = info.get("run_id")
+    mlflow = _mlflow(cfg.tracking)
+    experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
+    tags = run_tags(cfg) | {"mrcert.output_dir": str(output_dir.resolve())}
+    with mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags) as run:
+        mlflow.log_params(flatten(plain(cfg)))
+        mlflow.log_artifact(str(resolved))
+        log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
+        try:
+            yield Tracker(run.info.run_id)
+        except BaseException:
+            mlflow.end_run("FAILED")
+            raise
+
+
+class MultirunParentCallback(Callback):
+    """Creates the experiment and a parent run before a multirun's jobs start, and closes
+    it FINISHED (or FAILED when any child failed) when they are done."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if not config.tracking.enabled:
+            return
+        experiment_id = ensure_experiment(config.tracking)
+        client = _mlflow(config.tracking).MlflowClient()
+        sweep_dir = Path(config.hydra.sweep.dir)
+        tags = run_tags(config) | {
+            "mrcert.multirun": "parent",
+            "mrcert.sweep_dir": str(sweep_dir.resolve()),
+            "mrcert.overrides": " ".join(config.hydra.overrides.task),
+        }
+        run = client.create_run(experiment_id, tags=tags, run_name=f"sweep-{sweep_dir.name}")
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        (sweep_dir / PARENT_FILE).write_text(json.dumps({"run_id": run.info.run_id, "experiment_id": experiment_id}))
+        log.info("MLflow parent run %s for sweep %s", run.info.run_id, sweep_dir)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        if not config.tracking.enabled:
+            return
+        info = json.loads((Path(config.hydra.sweep.dir) / PARENT_FILE).read_text())
+        mlflow = _mlflow(config.tracking)
+        children = mlflow.search_runs(
+            experiment_ids=[info["experiment_id"]],
+            filter_string=f"tags.mlflow.parentRunId = '{info['run_id']}'",
+            output_format="list",
+        )
+        failed = any(r.info.status != "FINISHED" for r in children)
+        mlflow.MlflowClient().set_terminated(info["run_id"], "FAILED" if failed else "FINISHED")

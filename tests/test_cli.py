@@ -1,0 +1,108 @@
+"""The entry point end to end: task runs land in MLflow with params, tags and artifacts."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+FAST = ["task=render", "data.density=0.03", "task.num=2", "task.axes=[tx,rz]"]
+
+
+def mrcert(args: list[str], outputs: Path, check: bool = True) -> subprocess.CompletedProcess:
+    env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
+    )
+    if check:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def store(outputs: Path):
+    mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+    return mlflow.MlflowClient()
+
+
+def runs(outputs: Path) -> list:
+    client = store(outputs)
+    exp = client.get_experiment_by_name("mrcert")
+    return client.search_runs([exp.experiment_id]) if exp else []
+
+
+def test_render_run_is_tracked_with_params_tags_and_contact_sheet(tmp_path):
+    mrcert(FAST, tmp_path)
+    (run,) = runs(tmp_path)
+    assert run.info.status == "FINISHED"
+    assert run.data.params["task.name"] == "render" and run.data.params["data.density"] == "0.03"
+    assert run.data.params["motion.sigma"] == "0.1"
+    assert run.data.tags["mrcert.task"] == "render" and run.data.tags["mrcert.dataset"] == "testscene"
+    assert run.data.tags["mrcert.axis"] == "tz" and run.data.tags["mrcert.model"] == "resnet18"
+    assert run.data.metrics["num_images"] == 4
+    artifacts = {a.path for a in store(tmp_path).list_artifacts(run.info.run_id)}
+    assert {"contact_sheet.png", "resolved_config.yaml", "images"} <= artifacts
+    local = Path(run.data.tags["mrcert.output_dir"])
+    assert local.is_relative_to(tmp_path / "runs" / "render") and (local / "contact_sheet.png").is_file()
+    assert len(list((local / "images").glob("*.png"))) == 4
+
+
+def test_two_job_multirun_is_two_children_under_one_finished_parent(tmp_path):
+    mrcert(["-m", *FAST, "motion=tx,rz"], tmp_path)
+    all_runs = runs(tmp_path)
+    parents = [r for r in all_runs if r.data.tags.get("mrcert.multirun") == "parent"]
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    children = [r for r in all_runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
+    assert sorted(r.data.tags["mrcert.axis"] for r in children) == ["rz", "tx"]
+    assert all(r.info.status == "FINISHED" and r.data.metrics["num_images"] == 4 for r in children)
+
+
+def test_failing_job_marks_the_parent_failed_and_keeps_the_other_result(tmp_path):
+    proc = mrcert(["-m", *FAST, "data.image.height=90,0"], tmp_path, check=False)
+    assert proc.returncode != 0
+    all_runs = runs(tmp_path)
+    (parent,) = [r for r in all_runs if r.data.tags.get("mrcert.multirun") == "parent"]
+    assert parent.info.status == "FAILED"
+    (child,) = [r for r in all_runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
+    assert child.info.status == "FINISHED" and child.data.params["data.image.height"] == "90"
+
+
+def test_bad_value_stops_with_a_clear_message_and_no_traceback(tmp_path):
+    proc = mrcert([*FAST, "motion.sigma=-1"], tmp_path, check=False)
+    assert proc.returncode == 2
+    assert "motion.sigma=-1" in proc.stderr and "> 0" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert runs(tmp_path) == []
+
+
+def test_help_lists_the_tasks(tmp_path):
+    out = mrcert(["--help"], tmp_path).stdout
+    assert "Tasks:" in out and "render" in out and "task: render" in out
+
+
+def test_tracking_off_still_writes_outputs(tmp_path):
+    mrcert([*FAST, "tracking=off"], tmp_path)
+    assert not (tmp_path / "mlflow.db").exists()
+    assert len(list((tmp_path / "runs" / "render").glob("*/contact_sheet.png"))) == 1
+
+
+@pytest.mark.parametrize("suffix", [".ply"])
+def test_render_a_point_cloud_file(tmp_path, suffix):
+    import numpy as np
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud()
+    rng = np.random.default_rng(0)
+    pcd.points = o3d.utility.Vector3dVector(
+        np.column_stack([rng.uniform(-1, 1, 5000), rng.uniform(-0.5, 0.5, 5000), rng.uniform(1, 3, 5000)])
+    )
+    pcd.colors = o3d.utility.Vector3dVector(rng.uniform(0, 1, (5000, 3)))
+    path = tmp_path / f"scan{suffix}"
+    o3d.io.write_point_cloud(str(path), pcd)
+    mrcert([*FAST, "data=pointcloud", f"data.path={path}", "tracking=off"], tmp_path)
+    missing = mrcert(
+        [*FAST, "data=pointcloud", f"data.path={tmp_path / 'nope.ply'}", "tracking=off"], tmp_path, check=False
+    )
+    assert missing.returncode == 2 and "nope.ply" in missing.stderr and "does not exist" in missing.stderr

@@ -1,0 +1,70 @@
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from mrcert import geometry as g
+
+
+def test_rotvec_matrix_match_scipy_and_round_trip(rng):
+    n = rng.normal(size=(200, 3))
+    rv = n / np.linalg.norm(n, axis=1, keepdims=True) * rng.uniform(0, np.pi - 1e-3, (200, 1))
+    rv = np.concatenate([rv, [[0, 0, 0], [np.pi, 0, 0], [0, 0, np.pi - 1e-9], [1e-9, 0, 0]]])
+    R = g.rotvec_to_matrix(torch.tensor(rv))
+    np.testing.assert_allclose(R.numpy(), Rotation.from_rotvec(rv).as_matrix(), atol=1e-12)
+    back = g.matrix_to_rotvec(R).numpy()
+    np.testing.assert_allclose(Rotation.from_rotvec(back).as_matrix(), R.numpy(), atol=1e-9)
+    np.testing.assert_allclose(back[:-4], rv[:-4], atol=1e-9)
+
+
+@pytest.mark.parametrize("axis", ["rx", "ry", "rz"])
+def test_one_axis_rotations_are_the_spec_matrices(axis):
+    th = 0.3
+    c, s = np.cos(th), np.sin(th)
+    expected = {
+        "rx": [[1, 0, 0], [0, c, -s], [0, s, c]],
+        "ry": [[c, 0, s], [0, 1, 0], [-s, 0, c]],
+        "rz": [[c, -s, 0], [s, c, 0], [0, 0, 1]],
+    }[axis]
+    rv = torch.zeros(3, dtype=torch.float64)
+    rv[g.axis_index(axis) - 3] = th
+    assert torch.equal(g.rotvec_to_matrix(rv), torch.tensor(expected, dtype=torch.float64))
+
+
+def test_compose_is_lemma_1(rng):
+    a1 = torch.tensor(rng.normal(size=(50, 6)) * 0.3)
+    a2 = torch.tensor(rng.normal(size=(50, 6)) * 0.3)
+    c = g.compose(a1, a2)
+    R1, R2 = (Rotation.from_rotvec(a[:, 3:].numpy()) for a in (a1, a2))
+    np.testing.assert_allclose((R1 * R2).as_matrix(), g.rotvec_to_matrix(c[:, 3:]).numpy(), atol=1e-12)
+    t = np.einsum("bij,bj->bi", R1.as_matrix(), a2[:, :3].numpy()) + a1[:, :3].numpy()
+    np.testing.assert_allclose(c[:, :3].numpy(), t, atol=1e-12)
+
+
+@pytest.mark.parametrize("axis", g.AXES)
+def test_compose_along_one_axis_is_addition(axis, rng):
+    a1, a2 = torch.zeros(20, 6, dtype=torch.float64), torch.zeros(20, 6, dtype=torch.float64)
+    a1[:, g.axis_index(axis)] = torch.tensor(rng.uniform(-0.5, 0.5, 20))
+    a2[:, g.axis_index(axis)] = torch.tensor(rng.uniform(-0.5, 0.5, 20))
+    torch.testing.assert_close(g.compose(a1, a2), a1 + a2, atol=1e-12, rtol=0)
+
+
+def test_pose_motion_round_trip_and_camera_coordinates(rng):
+    pose = g.motion_to_matrix(torch.tensor(rng.normal(size=6)))
+    motion = torch.tensor(rng.normal(size=6) * 0.2)
+    moved = g.apply_motion(pose, motion)
+    torch.testing.assert_close(g.relative_motion(pose, moved), motion, atol=1e-12, rtol=0)
+    pw = torch.tensor(rng.normal(size=(10, 3)))
+    expected = (torch.linalg.inv(pose) @ torch.cat([pw, torch.ones(10, 1, dtype=torch.float64)], 1).T)[:3].T
+    torch.testing.assert_close(g.world_to_camera(pw, pose), expected, atol=1e-12, rtol=0)
+    # +tx moves the camera right: a point in front moves left in camera coordinates.
+    p = g.world_to_camera(
+        torch.tensor([[0.0, 0.0, 2.0]]),
+        g.apply_motion(torch.eye(4, dtype=torch.float64), torch.tensor([0.1, 0, 0, 0, 0, 0.0])),
+    )
+    assert p[0, 0] < 0
+
+
+def test_unknown_axis_is_named():
+    with pytest.raises(ValueError, match="'tw'.*tx, ty, tz, rx, ry, rz"):
+        g.axis_index("tw")

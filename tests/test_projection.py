@@ -1,0 +1,224 @@
+"""The projection O(V, alpha) against Open3D, the paper's closed forms and Lemma 1."""
+
+import numpy as np
+import pytest
+import torch
+
+from mrcert.geometry import AXES, axis_index, compose, motion_to_matrix, rotvec_to_matrix
+from mrcert.projection import project
+from tests.conftest import PAPER_K, random_cloud, random_motions
+
+H, W = 90, 160
+BACKENDS = ["numba", "torch"]
+
+
+def move_cloud(points: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+    """Camera coordinates R^T (P - t) of points after the camera moves by ``motion``."""
+    R = rotvec_to_matrix(motion[3:])
+    return (points - motion[:3]) @ R
+
+
+def open3d_depth(points: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
+    """Open3D's depth image (0 = empty) of float32 ``points``, with cx - 0.5, cy - 0.5 (SPEC section 2)."""
+    import open3d as o3d
+
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(points.astype(np.float32)))
+    pcd.point.colors = o3d.core.Tensor(np.ones((len(points), 3), np.float32))
+    K = PAPER_K.clone()
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    rgbd = pcd.project_to_rgbd_image(
+        W, H, o3d.core.Tensor(K.numpy()), o3d.core.Tensor(extrinsic), depth_scale=1.0, depth_max=1e6
+    )
+    return np.asarray(rgbd.depth.as_tensor().numpy())[..., 0]
+
+
+def unambiguous(camera_points: np.ndarray, margin: float = 1e-3) -> np.ndarray:
+    """Mask of points whose pixel coordinates lie more than ``margin`` px from a pixel edge.
+
+    Open3D computes in float32 (~1e-5 px of error), so points closer to an edge than that may
+    legitimately land on either side; they are left out of the comparison.
+    """
+    X, Y, Z = camera_points.T.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = 386.274 * (X / Z) + 80.0
+        v = 386.274 * (Y / Z) + 45.0
+    frac = lambda a: np.abs(a - np.round(a))  # noqa: E731
+    return (Z <= 0) | ((frac(u) > margin) & (frac(v) > margin))
+
+
+def as_depth_image(depth: torch.Tensor) -> np.ndarray:
+    return torch.where(torch.isinf(depth), 0.0, depth).float().numpy()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_pixel_rule_and_zbuffer_equal_open3d_exactly(backend, rng):
+    """Clouds moved by random motions, projected by both: identical float32 depth images."""
+    points, colors = random_cloud(rng)
+    for motion in random_motions(rng):
+        moved = move_cloud(points, motion).numpy().astype(np.float32)
+        moved = moved[unambiguous(moved)]
+        _, depth = project(
+            torch.from_numpy(moved.astype(np.float64)),
+            colors[: len(moved)],
+            PAPER_K,
+            torch.zeros(1, 6, dtype=torch.float64),
+            H,
+            W,
+            backend=backend,
+        )
+        theirs = open3d_depth(moved, np.eye(4))
+        assert (theirs > 0).sum() > 1000
+        np.testing.assert_array_equal(as_depth_image(depth[0]), theirs, err_msg=f"motion {motion.tolist()}")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_motions_match_open3d_extrinsics(backend, rng):
+    """Our motion = Open3D extrinsic inv([[R, t], [0, 1]]): same pixels filled, same depths to float32."""
+    points, colors = random_cloud(rng)
+    points = points.float().double()  # the float32 cloud Open3D sees
+    for motion in random_motions(rng):
+        keep = torch.from_numpy(unambiguous(move_cloud(points, motion).numpy(), margin=1e-2))
+        pts = points[keep]
+        _, depth = project(pts, colors[keep], PAPER_K, motion[None], H, W, backend=backend)
+        extrinsic = torch.linalg.inv(motion_to_matrix(motion)).numpy()
+        theirs = open3d_depth(pts.numpy(), extrinsic)
+        ours = as_depth_image(depth[0])
+        np.testing.assert_array_equal(ours > 0, theirs > 0, err_msg=f"motion {motion.tolist()}")
+        np.testing.assert_allclose(ours, theirs, rtol=1e-6)
+
+
+def closed_form(P: np.ndarray, axis: str, a: float) -> tuple[float, float, float]:
+    """Appendix A.2's pixel (u, v) and depth of a point under a one-axis motion.
+
+    The paper's R_z row coordinate has a sign typo (SPEC section 1); this uses R^{-1} P.
+    """
+    X, Y, Z = P
+    fx, fy, cx, cy = 386.274, 386.274, 80.0, 45.0
+    c, s = np.cos(a), np.sin(a)
+    if axis == "tz":
+        return (fx * X + cx * (Z - a)) / (Z - a), (fy * Y + cy * (Z - a)) / (Z - a), Z - a
+    if axis == "tx":
+        return (fx * (X - a) + cx * Z) / Z, (fy * Y + cy * Z) / Z, Z
+    if axis == "ty":
+        return (fx * X + cx * Z) / Z, (fy * (Y - a) + cy * Z) / Z, Z
+    if axis == "rz":
+        return (fx * c * X + fx * s * Y) / Z + cx, (fy * c * Y - fy * s * X) / Z + cy, Z
+    if axis == "rx":
+        D = -s * Y + c * Z
+        return fx * X / D + cx, (Y * c + Z * s) / D * fy + cy, D
+    D = s * X + c * Z  # ry
+    return (X * c - Z * s) / D * fx + cx, fy * Y / D + cy, D
+
+
+@pytest.mark.parametrize("axis", AXES)
+def test_single_points_follow_the_closed_forms(axis, rng):
+    for _ in range(40):
+        P = np.array([rng.uniform(-0.8, 0.8), rng.uniform(-0.4, 0.4), rng.uniform(1.5, 4.0)])
+        a = rng.uniform(-0.1, 0.1)
+        u, v, D = closed_form(P, axis, a)
+        motion = torch.zeros(1, 6, dtype=torch.float64)
+        motion[0, axis_index(axis)] = a
+        img, depth = project(torch.from_numpy(P[None]), torch.tensor([[0.2, 0.4, 0.6]]), PAPER_K, motion, H, W)
+        hit = torch.nonzero(torch.isfinite(depth[0]))
+        if not (0 <= u < W and 0 <= v < H):
+            assert len(hit) == 0
+            continue
+        assert hit.tolist() == [[int(np.floor(v)), int(np.floor(u))]]
+        assert depth[0, int(v), int(u)].item() == pytest.approx(D, rel=1e-12)
+        assert img[0, :, int(v), int(u)].tolist() == pytest.approx([0.2, 0.4, 0.6])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_lemma_1_moving_the_scene_then_rendering_equals_rendering_the_composition(backend, rng):
+    points, colors = random_cloud(rng, n=30000)
+    a1 = random_motions(rng, per_axis=2)
+    a2 = random_motions(rng, per_axis=2)
+    for m1, m2 in zip(a1, a2, strict=True):
+        moved = move_cloud(points, m1)
+        img_a, dep_a = project(moved, colors, PAPER_K, m2[None], H, W, backend=backend)
+        img_b, dep_b = project(points, colors, PAPER_K, compose(m1[None], m2[None]), H, W, backend=backend)
+        assert torch.equal(img_a, img_b)
+        assert torch.equal(torch.isinf(dep_a), torch.isinf(dep_b))
+
+
+@pytest.mark.parametrize("axis", AXES)
+def test_one_axis_composition_is_addition_in_images(axis, rng):
+    points, colors = random_cloud(rng, n=30000)
+    i = axis_index(axis)
+    for _ in range(3):
+        m1, m2 = torch.zeros(6, dtype=torch.float64), torch.zeros(6, dtype=torch.float64)
+        m1[i], m2[i] = rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)
+        img_a, _ = project(move_cloud(points, m1), colors, PAPER_K, m2[None], H, W)
+        img_b, _ = project(points, colors, PAPER_K, (m1 + m2)[None], H, W)
+        assert torch.equal(img_a, img_b)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_nearer_point_wins_and_equal_depths_break_to_the_lowest_index(backend):
+    K = torch.tensor([[64.0, 0, 80], [0, 64.0, 45], [0, 0, 1]], dtype=torch.float64)
+    zero = torch.zeros(1, 6, dtype=torch.float64)
+    near, far = [0.01, 0.01, 1.0], [0.02, 0.02, 2.0]  # both on pixel (45, 80)
+    red, blue = [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]
+    for pts, cols in (([near, far], [red, blue]), ([far, near], [blue, red])):
+        img, depth = project(torch.tensor(pts), torch.tensor(cols), K, zero, H, W, backend=backend)
+        assert img[0, :, 45, 80].tolist() == red
+        assert depth[0, 45, 80].item() == 1.0
+    same = [[0.01, 0.01, 1.0], [0.015, 0.015, 1.0], [0.012, 0.012, 1.0]]
+    for _ in range(5):
+        img, _ = project(torch.tensor(same), torch.tensor([red, blue, [0.0, 1.0, 0.0]]), K, zero, H, W, backend=backend)
+        assert img[0, :, 45, 80].tolist() == red
+    img, _ = project(torch.tensor(same), torch.tensor([blue, red, red]), K, zero, H, W, backend=backend)
+    assert img[0, :, 45, 80].tolist() == blue
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_points_behind_the_camera_and_on_the_borders(backend):
+    # fx = 64, cx = 80, Z = 1: u = 64 X + 80 exactly in binary floating point.
+    K = torch.tensor([[64.0, 0, 80], [0, 64.0, 45], [0, 0, 1]], dtype=torch.float64)
+    pts = torch.tensor(
+        [
+            [0.0, 0.0, -1.0],  # behind the camera
+            [0.0, 0.0, 0.0],  # at the camera centre (Z = 0)
+            [-1.25, 0.0, 1.0],  # u = 0 exactly: column 0
+            [1.25, 0.1, 1.0],  # u = 160 = W exactly: outside
+            [1.25 - 2**-20, 0.2, 1.0],  # u just below W: column 159
+            [0.3, -45 / 64, 1.0],  # v = 0 exactly: row 0
+            [0.4, 45 / 64, 1.0],  # v = 90 = H exactly: outside
+        ],
+        dtype=torch.float64,
+    )
+    cols = torch.linspace(0, 1, len(pts), dtype=torch.float32)[:, None].repeat(1, 3)
+    img, depth = project(pts, cols, K, torch.zeros(1, 6, dtype=torch.float64), H, W, background=0.5, backend=backend)
+    hits = {tuple(x) for x in torch.nonzero(torch.isfinite(depth[0])).tolist()}
+    assert hits == {(45, 0), (int(np.floor(45 + 0.2 * 64)), 159), (0, int(np.floor(80 + 0.3 * 64)))}
+    assert (img[0][:, torch.isinf(depth[0])] == 0.5).all()
+
+
+def test_backends_and_chunking_give_identical_images(rng):
+    points, colors = random_cloud(rng, n=50000)
+    motions = random_motions(rng, per_axis=4)
+    ref_img, ref_depth = project(points, colors, PAPER_K, motions, H, W, backend="numba")
+    for kwargs in (
+        {"backend": "torch"},
+        {"backend": "torch", "chunk_elements": 1},
+        {"backend": "torch", "chunk_elements": 120_001},
+    ):
+        img, depth = project(points, colors, PAPER_K, motions, H, W, **kwargs)
+        assert torch.equal(img, ref_img) and torch.equal(depth, ref_depth)
+    # Rendering motions one by one equals rendering them in one batch.
+    for b in (0, 7, len(motions) - 1):
+        img, _ = project(points, colors, PAPER_K, motions[b : b + 1], H, W)
+        assert torch.equal(img[0], ref_img[b])
+
+
+def test_bad_shapes_are_reported():
+    pts = torch.zeros(4, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"points must have shape \(N, 3\)"):
+        project(torch.zeros(4, 2), torch.zeros(4, 3), PAPER_K, torch.zeros(1, 6), H, W)
+    with pytest.raises(ValueError, match=r"motions must have shape \(B, 6\)"):
+        project(pts, torch.zeros(4, 3), PAPER_K, torch.zeros(1, 3), H, W)
+    with pytest.raises(ValueError, match="height must be a positive integer, got 0"):
+        project(pts, torch.zeros(4, 3), PAPER_K, torch.zeros(1, 6), 0, W)
+    with pytest.raises(ValueError, match="unknown projection backend 'cuda'"):
+        project(pts, torch.zeros(4, 3), PAPER_K, torch.zeros(1, 6), H, W, backend="cuda")
