@@ -29,7 +29,7 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
         mrcert_config.validate(cfg)
         func = TASKS[cfg.task.name].load()
         with task_run(cfg, output_dir) as tracker:
-            result = func(cfg, RunContext(output_dir, tracker))
+            result = func(cfg, RunContext(tracker.output_dir, tracker))
     except BaseException:
         fail_parent(cfg)
         raise

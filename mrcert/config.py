@@ -87,17 +87,42 @@ RULES: dict[str, Rule] = {
     ),
     "backend": (lambda v: v in ("auto", "numba", "torch"), "one of auto, numba, torch"),
     "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+    "room_density": (_positive, "a finite number > 0 (metres)"),
+    "per_class": (_positive_int, "an integer >= 1"),
+    "max_translation": (lambda v: _number(v) and v >= 0, "a finite number >= 0 (metres)"),
+    "max_rotation": (lambda v: _number(v) and v >= 0, "a finite number >= 0 (radians)"),
+    "every_k": (_positive_int, "an integer >= 1"),
+    "voxel": (_positive, "a finite number > 0 (metres)"),
+    "variant": (lambda v: v in ("vanilla", "augmented"), "vanilla or augmented"),
+    "epochs": (_positive_int, "an integer >= 1"),
+    "batch_size": (_positive_int, "an integer >= 1"),
+    "eval_batch_size": (_positive_int, "an integer >= 1"),
+    "lr": (_positive, "a finite number > 0"),
+    "momentum": (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
+    "weight_decay": (lambda v: _number(v) and v >= 0, "a finite number >= 0"),
+    "step_size": (_positive_int, "an integer >= 1"),
+    "gamma": (lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
 }
+RANGE_RULE: Rule = (
+    lambda v: isinstance(v, list) and len(v) == 2 and all(_number(x) for x in v) and v[0] <= v[1],
+    "a list [low, high] of two finite numbers with low <= high",
+)
+
+
+def rule_for(path: str) -> Rule | None:
+    """The rule for a dotted key, by its last component (``*_range`` keys share one rule)."""
+    name = path.rsplit(".", 1)[-1]
+    return RANGE_RULE if name.endswith("_range") else RULES.get(name)
 
 
 def _leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    """(dotted key, value) of every leaf; a list named ``axes`` counts as one leaf."""
+    """(dotted key, value) of every leaf; a list with a rule of its own (``axes``, ``*_range``) is one leaf."""
     if isinstance(node, dict):
         children = [(f"{prefix}.{k}" if prefix else str(k), v) for k, v in node.items()]
     else:
         children = [(f"{prefix}[{i}]", v) for i, v in enumerate(node)]
     for path, value in children:
-        if isinstance(value, (dict, list)) and not path.endswith(".axes"):
+        if isinstance(value, dict) or (isinstance(value, list) and rule_for(path) is None):
             yield from _leaves(value, path)
         else:
             yield path, value
@@ -115,7 +140,7 @@ def validate(cfg: DictConfig) -> None:
     if task not in TASKS:
         raise ConfigError("task.name", task, f"one of {', '.join(TASKS)}")
     for path, value in _leaves(data):
-        rule = RULES.get(path.rsplit(".", 1)[-1])
+        rule = rule_for(path)
         if rule is not None and value is not None and not rule[0](value):
             raise ConfigError(path, value, rule[1])
     extent = data.get("task", {}).get("extent") or {}

@@ -110,11 +110,3 @@ def relative_motion(pose_from: torch.Tensor, pose_to: torch.Tensor) -> torch.Ten
 def apply_motion(pose: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     """Camera-to-world pose after moving the camera by ``motion`` in its own frame."""
     return torch.as_tensor(pose, dtype=torch.float64) @ motion_to_matrix(motion)
-
-
-def world_to_camera(points_world: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-    """Camera coordinates ``inv(pose)[:3] @ [Pw; 1]`` of world points (N, 3) for one pose."""
-    pose = torch.as_tensor(pose, dtype=torch.float64)
-    pts = torch.as_tensor(points_world, dtype=torch.float64)
-    R, t = pose[:3, :3], pose[:3, 3]
-    return (pts - t) @ R

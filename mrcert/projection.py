@@ -87,6 +87,19 @@ def project(
     return images, depth.view(-1, height, width)
 
 
+def camera_points(points: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+    """``R^T (P - t)`` for one motion (6,), computed with exactly the projection's float64 operations.
+
+    So ``project(camera_points(P, m), zero motion)`` equals ``project(P, m)`` bit for bit; use it
+    to move a cloud into a camera's frame (for a camera-to-world pose: ``m = matrix_to_motion(pose)``).
+    """
+    xyz = torch.as_tensor(points).to(torch.float64)
+    motion = torch.as_tensor(motion, dtype=torch.float64, device=xyz.device).reshape(1, 6)
+    r = rotvec_to_matrix(motion[:, 3:])
+    dx, dy, dz = (xyz[:, i][None, :] - motion[:, i : i + 1] for i in range(3))
+    return torch.stack([_camera_coordinate(r, j, dx, dy, dz)[0] for j in range(3)], dim=1)
+
+
 def _check_inputs(points, colors, K, motions, height, width) -> None:
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {tuple(points.shape)}")

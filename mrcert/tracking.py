@@ -7,6 +7,7 @@ file in the sweep directory -- never by jobs racing to create them (SPEC section
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -45,7 +46,7 @@ def flatten(data: Any, prefix: str = "") -> dict[str, str]:
     return out
 
 
-def _mlflow(tracking: DictConfig):
+def configure(tracking: DictConfig):
     """The mlflow module pointed at the configured store; makes the SQLite folder."""
     import mlflow
 
@@ -64,7 +65,7 @@ def _mlflow(tracking: DictConfig):
 
 def ensure_experiment(tracking: DictConfig) -> str:
     """Id of the configured experiment, created (with its artifact location) if missing."""
-    mlflow = _mlflow(tracking)
+    mlflow = configure(tracking)
     client = mlflow.MlflowClient()
     try:
         exp = client.get_experiment_by_name(tracking.experiment)
@@ -87,15 +88,35 @@ def run_tags(cfg: DictConfig) -> dict[str, str]:
         "mrcert.axis": select("motion.axis"),
         "mrcert.model": select("model.arch"),
         "mrcert.dataset": select("data.name"),
+        "mrcert.variant": select("model.variant"),
+        "mrcert.profile": select("profile.name"),
     }
     return {k: str(v) for k, v in tags.items() if v is not None}
 
 
+VOLATILE = ("task.resume",)
+"""Keys that change how a run starts but not what it computes: not params, not in the config key."""
+
+
+def config_key(cfg: DictConfig) -> str:
+    """Hash of what a run computes: the config without tracking, paths, device and volatile keys."""
+    from mrcert.config import plain
+
+    data = {
+        k: v
+        for k, v in flatten(plain(cfg)).items()
+        if k not in VOLATILE and not k.startswith(("tracking.", "paths.")) and k != "device"
+    }
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
 @dataclass
 class Tracker:
-    """What a task logs through; does nothing when tracking is off."""
+    """What a task logs through (does nothing when tracking is off), and where its files live."""
 
+    output_dir: Path
     run_id: str | None = None
+    resumed: bool = False
 
     @property
     def enabled(self) -> bool:
@@ -134,32 +155,59 @@ def fail_parent(cfg: DictConfig) -> None:
     """Mark the multirun's parent run FAILED (called when one of its jobs fails)."""
     info = _parent_info()
     if cfg.tracking.enabled and info is not None:
-        _mlflow(cfg.tracking).MlflowClient().set_terminated(info["run_id"], "FAILED")
+        configure(cfg.tracking).MlflowClient().set_terminated(info["run_id"], "FAILED")
+
+
+def unfinished_run(cfg: DictConfig, experiment_id: str):
+    """The latest run of this same config (by :func:`config_key`) that did not finish, if any."""
+    import mlflow
+
+    runs = mlflow.search_runs(
+        experiment_ids=[experiment_id],
+        filter_string=f"tags.`mrcert.config_key` = '{config_key(cfg)}' and attributes.status != 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+        output_format="list",
+    )
+    return runs[0] if runs else None
 
 
 @contextmanager
 def task_run(cfg: DictConfig, output_dir: Path) -> Iterator[Tracker]:
     """An MLflow run around one task: params, tags and the resolved config on entry,
-    status FINISHED or FAILED on exit; a child of the sweep's parent run in a multirun."""
+    status FINISHED or FAILED on exit; a child of the sweep's parent run in a multirun.
+
+    With ``task.resume=true`` the latest unfinished run of the same config is reopened and
+    the task continues in that run's output directory.
+    """
     from mrcert.config import plain, to_yaml
 
     output_dir.mkdir(parents=True, exist_ok=True)
     resolved = output_dir / "resolved_config.yaml"
     resolved.write_text(to_yaml(cfg))
     if not cfg.tracking.enabled:
-        yield Tracker()
+        yield Tracker(output_dir)
         return
     info = _parent_info() or {}
     parent_id = info.get("run_id")
-    mlflow = _mlflow(cfg.tracking)
+    mlflow = configure(cfg.tracking)
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
-    tags = run_tags(cfg) | {"mrcert.output_dir": str(output_dir.resolve())}
-    with mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags) as run:
-        mlflow.log_params(flatten(plain(cfg)))
-        mlflow.log_artifact(str(resolved))
+    previous = unfinished_run(cfg, experiment_id) if cfg.task.get("resume") else None
+    if previous is not None:
+        output_dir = Path(previous.data.tags["mrcert.output_dir"])
+        log.info("resuming MLflow run %s from %s", previous.info.run_id, output_dir)
+        run_ctx = mlflow.start_run(run_id=previous.info.run_id)
+    else:
+        tags = run_tags(cfg) | {"mrcert.output_dir": str(output_dir.resolve()), "mrcert.config_key": config_key(cfg)}
+        run_ctx = mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags)
+    with run_ctx as run:
+        if previous is None:
+            params = {k: v for k, v in flatten(plain(cfg)).items() if k not in VOLATILE}
+            mlflow.log_params(params)
+            mlflow.log_artifact(str(resolved))
         log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
         try:
-            yield Tracker(run.info.run_id)
+            yield Tracker(output_dir, run.info.run_id, resumed=previous is not None)
         except BaseException:
             mlflow.end_run("FAILED")
             raise
@@ -173,7 +221,7 @@ class MultirunParentCallback(Callback):
         if not config.tracking.enabled:
             return
         experiment_id = ensure_experiment(config.tracking)
-        client = _mlflow(config.tracking).MlflowClient()
+        client = configure(config.tracking).MlflowClient()
         sweep_dir = Path(config.hydra.sweep.dir)
         tags = run_tags(config) | {
             "mrcert.multirun": "parent",
@@ -189,7 +237,7 @@ class MultirunParentCallback(Callback):
         if not config.tracking.enabled:
             return
         info = json.loads((Path(config.hydra.sweep.dir) / PARENT_FILE).read_text())
-        mlflow = _mlflow(config.tracking)
+        mlflow = configure(config.tracking)
         children = mlflow.search_runs(
             experiment_ids=[info["experiment_id"]],
             filter_string=f"tags.mlflow.parentRunId = '{info['run_id']}'",

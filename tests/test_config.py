@@ -22,10 +22,12 @@ def compose_cfg(overrides: list[str]):
 
 
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
-def test_every_option_composes_and_validates(group, option, tmp_path):
-    overrides = [f"{group}={option}"]
-    if (group, option) == ("data", "pointcloud"):
-        overrides.append(f"data.path={tmp_path / 'scan.ply'}")
+def test_every_option_composes_and_validates(group, option):
+    required = {
+        ("data", "pointcloud"): ["data.path=scan.ply"],
+        ("data", "custom"): ["data.path=scan.ply", "data.poses=poses.json"],
+    }
+    overrides = [f"{group}={option}", *required.get((group, option), [])]
     cfg = compose_cfg(overrides)
     validate(cfg)
     assert OmegaConf.select(cfg, "hydra.run.dir").startswith(str(cfg.paths.outputs))

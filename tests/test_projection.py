@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from mrcert.geometry import AXES, axis_index, compose, motion_to_matrix, rotvec_to_matrix
-from mrcert.projection import project
+from mrcert.projection import camera_points, project
 from tests.conftest import PAPER_K, random_cloud, random_motions
 
 H, W = 90, 160
@@ -193,6 +193,22 @@ def test_points_behind_the_camera_and_on_the_borders(backend):
     hits = {tuple(x) for x in torch.nonzero(torch.isfinite(depth[0])).tolist()}
     assert hits == {(45, 0), (int(np.floor(45 + 0.2 * 64)), 159), (0, int(np.floor(80 + 0.3 * 64)))}
     assert (img[0][:, torch.isinf(depth[0])] == 0.5).all()
+
+
+def test_camera_points_are_the_pose_frame_and_render_exactly(rng):
+    """camera_points(P, m) = inv(pose)[:3] @ [P; 1] for pose = [[R, t], [0, 1]], and rendering them
+    without motion equals rendering P under m, bit for bit; +tx moves points left."""
+    points, colors = random_cloud(rng, n=20000)
+    for motion in random_motions(rng, per_axis=1):
+        cam = camera_points(points, motion)
+        pose = motion_to_matrix(motion)
+        expected = torch.linalg.inv(pose) @ torch.cat([points, torch.ones(len(points), 1, dtype=torch.float64)], 1).T
+        torch.testing.assert_close(cam, expected[:3].T, atol=1e-12, rtol=0)
+        a, _ = project(cam, colors, PAPER_K, torch.zeros(1, 6, dtype=torch.float64), H, W)
+        b, _ = project(points, colors, PAPER_K, motion[None], H, W)
+        assert torch.equal(a, b)
+    moved = camera_points(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([0.1, 0, 0, 0, 0, 0.0]))
+    assert moved[0, 0] < 0
 
 
 def test_backends_and_chunking_give_identical_images(rng):

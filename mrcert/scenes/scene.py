@@ -37,7 +37,11 @@ def intrinsics(image: DictConfig) -> torch.Tensor:
 
 
 def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """xyz (N, 3) float64 and RGB (N, 3) float32 in [0, 1] of a file open3d reads."""
+    """xyz (N, 3) float64 and RGB (N, 3) float32 in [0, 1] of a ``.ply`` / ``.pcd`` file.
+
+    Colours may be stored in [0, 1] or 0-255 (integer or float); anything else is an error,
+    as are a missing file, no points and NaN or infinite values. No colours: mid grey.
+    """
     import open3d as o3d
 
     path = Path(path)
@@ -45,16 +49,24 @@ def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise MrcertError(f"point cloud file {str(path)!r} does not exist")
     if path.suffix.lower() not in (".ply", ".pcd"):
         raise MrcertError(f"point cloud file {str(path)!r} has suffix {path.suffix!r}; allowed: .ply, .pcd")
-    pcd = o3d.io.read_point_cloud(str(path))
-    points = np.asarray(pcd.points, dtype=np.float64)
-    if len(points) == 0:
+    pcd = o3d.t.io.read_point_cloud(str(path))
+    if "positions" not in pcd.point or len(pcd.point.positions) == 0:
         raise MrcertError(f"point cloud file {str(path)!r} has no points (or open3d cannot parse it)")
+    points = pcd.point.positions.numpy().astype(np.float64)
     if not np.isfinite(points).all():
         raise MrcertError(f"point cloud file {str(path)!r} has NaN or infinite coordinates")
-    colors = (
-        np.asarray(pcd.colors, dtype=np.float32) if pcd.has_colors() else np.full((len(points), 3), 0.5, np.float32)
-    )
-    return points, colors
+    if "colors" not in pcd.point:
+        return points, np.full((len(points), 3), 0.5, np.float32)
+    raw = pcd.point.colors.numpy()
+    colors = raw.astype(np.float64)
+    if not np.isfinite(colors).all() or colors.min() < 0 or colors.max() > 255:
+        raise MrcertError(
+            f"point cloud file {str(path)!r} has colours outside [0, 1] and 0-255 "
+            f"(min {colors.min()}, max {colors.max()})"
+        )
+    if raw.dtype == np.uint8 or colors.max() > 1:
+        colors = colors / 255.0
+    return points, colors.astype(np.float32)
 
 
 def load_scene(data: DictConfig, device: torch.device | str = "cpu") -> Scene:

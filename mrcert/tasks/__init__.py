@@ -37,5 +37,6 @@ class Task:
 
 
 TASKS: dict[str, Task] = {
-    "render": Task("mrcert.tasks.render:run", "render a scene under a grid of camera motions (PNGs + contact sheet)"),
+    "render": Task("mrcert.tasks.render:run", "render a scene under motions, or a dataset's images into the cache"),
+    "train": Task("mrcert.tasks.train:run", "train a vanilla or motion-augmented base classifier"),
 }

@@ -1,0 +1,93 @@
+"""Users' own scenes: a point cloud file, a poses file and the camera of ``data.image``.
+
+Poses file (JSON)::
+
+    {"classes": ["mug", "can"],
+     "poses": [{"split": "train", "label": "mug", "pose": [[r00, r01, r02, tx], ..., [0, 0, 0, 1]]},
+               {"split": "test",  "label": "can", "pose": [[...]]}]}
+
+``pose`` is a 4x4 camera-to-world matrix in OpenCV camera axes (x right, y down, z forward),
+the cloud is in the same world frame.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from mrcert.data.datasets import PosedCloudData, file_digest
+from mrcert.data.synthetic import Split
+from mrcert.errors import MrcertError
+from mrcert.scenes.scene import read_point_cloud
+
+SPLITS = ("train", "test")
+
+
+def check_rigid(pose: Any, where: str) -> np.ndarray:
+    """A 4x4 rigid transform (rotation with det +1, last row 0 0 0 1), or a clear error."""
+    try:
+        m = np.asarray(pose, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise MrcertError(f"{where}: pose is not a 4x4 matrix of numbers") from None
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise MrcertError(f"{where}: pose must be a finite 4x4 matrix, got shape {m.shape}")
+    R = m[:3, :3]
+    if (
+        not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9)
+        or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+        or np.linalg.det(R) < 0
+    ):
+        raise MrcertError(
+            f"{where}: pose is not a rigid transform (rotation part must be orthonormal with "
+            f"det +1 and the last row 0 0 0 1)"
+        )
+    return m
+
+
+def read_poses(path: Path) -> tuple[list[str], dict[str, Split]]:
+    if not path.is_file():
+        raise MrcertError(f"poses file {str(path)!r} does not exist")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise MrcertError(f"poses file {str(path)!r} is not valid JSON: {exc}") from None
+    classes, entries = doc.get("classes"), doc.get("poses")
+    if not isinstance(classes, list) or not classes or not isinstance(entries, list):
+        raise MrcertError(f"poses file {str(path)!r} needs a non-empty 'classes' list and a 'poses' list")
+    rows: dict[str, list[tuple[np.ndarray, int]]] = {s: [] for s in SPLITS}
+    for i, e in enumerate(entries):
+        where = f"{path}: poses[{i}]"
+        if e.get("split") not in SPLITS:
+            raise MrcertError(f"{where}: split {e.get('split')!r} is not allowed: train or test")
+        if e.get("label") not in classes:
+            raise MrcertError(f"{where}: label {e.get('label')!r} is not one of the classes {classes}")
+        rows[e["split"]].append((check_rigid(e.get("pose"), where), classes.index(e["label"])))
+    for s in SPLITS:
+        if not rows[s]:
+            raise MrcertError(f"poses file {str(path)!r} has no {s} poses")
+    splits = {
+        s: Split(np.stack([p for p, _ in r]), np.zeros((len(r), 4)), np.array([c for _, c in r], np.int64))
+        for s, r in rows.items()
+    }
+    return list(classes), splits
+
+
+class CustomData(PosedCloudData):
+    def __init__(self, data: DictConfig):
+        super().__init__(data)
+        self.cloud_path, self.poses_path = Path(data.path), Path(data.poses)
+        self.points, self.colors = read_point_cloud(self.cloud_path)
+        self.classes, self.splits = read_poses(self.poses_path)
+
+    def cloud(self, label: int):
+        return self.points, self.colors
+
+    def split(self, name: str) -> Split:
+        return self.splits[name]
+
+    def identity(self) -> dict[str, Any]:
+        return {"cloud": file_digest(self.cloud_path), "poses": file_digest(self.poses_path)}

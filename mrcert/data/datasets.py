@@ -1,0 +1,250 @@
+"""torch Datasets of rendered images and of re-renderable test samples, for every data source.
+
+:func:`load` turns a ``data`` config into a :class:`DataBundle` with
+
+* ``train()`` / ``test()``: :class:`ImageSet` of rendered images (cached under
+  ``data.cache_dir``; training images optionally motion-augmented on one axis),
+* ``samples()``: :class:`SampleSet` of :class:`~mrcert.data.samples.TestSample`, which carry
+  their cloud in the camera frame, ``K``, the image size and the label.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import Dataset
+
+from mrcert.data.cache import cached_arrays
+from mrcert.data.samples import TestSample
+from mrcert.data.synthetic import Split, SyntheticSource
+from mrcert.errors import MrcertError
+from mrcert.geometry import axis_index, matrix_to_motion, motion_to_matrix
+from mrcert.projection import camera_points, project
+from mrcert.scenes.scene import intrinsics
+
+
+@dataclass(frozen=True)
+class Augment:
+    """Motion augmentation of training images: a Gaussian motion on one axis."""
+
+    axis: str
+    sigma: float
+    seed: int = 0
+
+    def motions(self, n: int) -> torch.Tensor:
+        rng = np.random.default_rng([self.seed, 1000 + axis_index(self.axis)])
+        m = torch.zeros(n, 6, dtype=torch.float64)
+        m[:, axis_index(self.axis)] = torch.from_numpy(rng.normal(0.0, self.sigma, n))
+        return m
+
+
+class ImageSet(Dataset):
+    """Images (N, H, W, C) uint8 with labels; items are (float image (C, H, W) in [0, 1], label)."""
+
+    def __init__(self, images: np.ndarray, labels: np.ndarray, classes: list[str]):
+        self.images, self.labels, self.classes = images, np.array(labels, np.int64), classes
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, int]:
+        img = torch.from_numpy(np.array(self.images[i])).permute(2, 0, 1).float() / 255.0
+        return img, int(self.labels[i])
+
+
+class SampleSet(Dataset):
+    """Test samples built on demand by ``make(i)``."""
+
+    def __init__(self, labels: np.ndarray, make):
+        self.labels, self._make = np.asarray(labels, np.int64), make
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def __getitem__(self, i: int) -> TestSample:
+        if not 0 <= i < len(self):
+            raise IndexError(f"test sample {i} out of range 0..{len(self) - 1}")
+        return self._make(i)
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    """(B, C, H, W) in [0, 1] to (B, H, W, C) uint8 (exact for colours that are k/255)."""
+    return (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
+def render_poses(
+    cloud,
+    poses: np.ndarray,
+    K: torch.Tensor,
+    height: int,
+    width: int,
+    background: float,
+    motions: torch.Tensor | None = None,
+    batch: int = 64,
+) -> np.ndarray:
+    """uint8 images of a world-frame cloud seen from camera-to-world ``poses`` (each moved by ``motions``)."""
+    points, colors = (torch.from_numpy(np.ascontiguousarray(a)) for a in cloud)
+    pose_t = torch.from_numpy(np.asarray(poses, np.float64))
+    if motions is not None:
+        pose_t = pose_t @ motion_to_matrix(motions)
+    # The world frame is the reference camera, so a pose is the motion that reaches it.
+    camera_motions = matrix_to_motion(pose_t)
+    out = np.empty((len(poses), height, width, colors.shape[1]), np.uint8)
+    for s in range(0, len(poses), batch):
+        imgs, _ = project(points, colors, K, camera_motions[s : s + batch], height, width, background)
+        out[s : s + batch] = to_uint8(imgs)
+    return out
+
+
+class DataBundle(ABC):
+    """What a data source provides: classes, image sets and test samples."""
+
+    classes: list[str]
+
+    def __init__(self, data: DictConfig):
+        self.data = data
+        self.K = intrinsics(data.image)
+        self.height, self.width = int(data.image.height), int(data.image.width)
+        self.background = float(data.image.background)
+        self.cache_info: dict[str, dict[str, Any]] = {}
+
+    def crop_args(self) -> dict[str, Any]:
+        crop = self.data.get("crop")
+        if not crop:
+            return {}
+        return {"max_translation": float(crop.max_translation), "max_rotation": float(crop.max_rotation)}
+
+    @abstractmethod
+    def train(self, augment: Augment | None = None) -> ImageSet:
+        """Training images (motion-augmented on one axis when ``augment`` is given)."""
+
+    @abstractmethod
+    def test(self) -> ImageSet:
+        """Clean test images."""
+
+    @abstractmethod
+    def samples(self, downsampling: tuple[int, float] | None = None) -> SampleSet:
+        """Re-renderable test samples, in the order of :meth:`test`."""
+
+
+class PosedCloudData(DataBundle):
+    """Data rendered from world-frame clouds at known poses (synthetic and custom scenes)."""
+
+    @abstractmethod
+    def cloud(self, label: int) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame points and colours of class ``label``'s scene."""
+
+    @abstractmethod
+    def split(self, name: str) -> Split:
+        """Poses and labels of the ``train`` or ``test`` split."""
+
+    @abstractmethod
+    def identity(self) -> dict[str, Any]:
+        """Everything besides the split that determines the rendered images."""
+
+    def _images(self, name: str, augment: Augment | None) -> ImageSet:
+        split = self.split(name)
+        spec = {
+            "data": self.identity(),
+            "split": name,
+            "image": OmegaConf.to_container(self.data.image),
+            "augment": None if augment is None else vars(augment),
+        }
+
+        def build() -> dict[str, np.ndarray]:
+            images = np.empty((len(split), self.height, self.width, 3), np.uint8)
+            motions = augment.motions(len(split)) if augment is not None else None
+            for label in np.unique(split.labels):
+                idx = np.nonzero(split.labels == label)[0]
+                images[idx] = render_poses(
+                    self.cloud(int(label)),
+                    split.poses[idx],
+                    self.K,
+                    self.height,
+                    self.width,
+                    self.background,
+                    None if motions is None else motions[idx],
+                )
+            return {"images": images, "labels": split.labels, "poses": split.poses}
+
+        tag = name if augment is None else f"{name}-{augment.axis}-aug"
+        arrays, folder, hit = cached_arrays(Path(self.data.cache_dir), f"{self.data.name}-{tag}", spec, build)
+        self.cache_info[tag] = {"folder": str(folder), "hit": hit, "images": len(split)}
+        return ImageSet(arrays["images"], arrays["labels"], self.classes)
+
+    def train(self, augment: Augment | None = None) -> ImageSet:
+        return self._images("train", augment)
+
+    def test(self) -> ImageSet:
+        return self._images("test", None)
+
+    def samples(self, downsampling: tuple[int, float] | None = None) -> SampleSet:
+        split = self.split("test")
+
+        def make(i: int) -> TestSample:
+            label = int(split.labels[i])
+            points, colors = self.cloud(label)
+            cam = camera_points(torch.from_numpy(points), matrix_to_motion(torch.from_numpy(split.poses[i]))).numpy()
+            return TestSample.build(
+                cam,
+                colors,
+                self.K,
+                self.height,
+                self.width,
+                label,
+                self.background,
+                downsampling=downsampling,
+                **self.crop_args(),
+            )
+
+        return SampleSet(split.labels, make)
+
+
+class SyntheticData(PosedCloudData):
+    def __init__(self, data: DictConfig):
+        super().__init__(data)
+        self.source = SyntheticSource(data)
+        self.classes = self.source.classes
+
+    def cloud(self, label: int):
+        return self.source.cloud(label)
+
+    def split(self, name: str) -> Split:
+        return self.source.split(name)
+
+    def identity(self) -> dict[str, Any]:
+        keep = ("source", "seed", "density", "room_density", "protocol")
+        return {
+            k: OmegaConf.to_container(self.data[k]) if OmegaConf.is_config(self.data[k]) else self.data[k] for k in keep
+        } | {"classes": self.classes}
+
+
+def file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load(data: DictConfig) -> DataBundle:
+    """The data bundle a ``data`` config names."""
+    from mrcert.data.custom import CustomData
+    from mrcert.data.release import ReleasedMetaRoom
+
+    sources = {
+        "metaroom_synth": SyntheticData,
+        "tabletop_synth": SyntheticData,
+        "custom": CustomData,
+        "metaroom": ReleasedMetaRoom,
+    }
+    if data.source not in sources:
+        raise MrcertError(f"data.source={data.source!r} is not a dataset; allowed: {', '.join(sources)}")
+    return sources[data.source](data)

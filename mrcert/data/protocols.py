@@ -1,0 +1,109 @@
+"""Camera pose protocols of the paper's datasets (SPEC section 3).
+
+A pose is given by ``(yaw, pitch, roll, radius)`` around a target point: the camera sits at
+``target + radius * (cos p cos y, cos p sin y, sin p)`` (z up), looks at the target, and is
+rolled by ``roll`` about its optical axis (a roll is the camera's own ``rz`` motion). Angles
+are in degrees here, as in the paper's protocol; poses are 4x4 camera-to-world matrices in
+the OpenCV camera convention (x right, y down, z forward).
+
+Separation rule: a training pose is kept only if, for every test pose, it differs by at
+least the given gap in at least one of the quantities (yaw circularly). So no training pose
+lies inside the box of half-widths ``gap`` around any test pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+QUANTITIES = ("yaw", "pitch", "roll", "radius")
+
+
+def look_at_poses(yaw, pitch, roll, radius, target=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Camera-to-world poses (N, 4, 4) from angles in degrees and radii in metres."""
+    y, p, r = (np.deg2rad(np.asarray(a, dtype=np.float64)) for a in (yaw, pitch, roll))
+    radius = np.asarray(radius, dtype=np.float64)
+    n = np.broadcast(y, p, r, radius).shape
+    y, p, r, radius = (np.broadcast_to(a, n).reshape(-1) for a in (y, p, r, radius))
+    center = np.asarray(target, np.float64) + radius[:, None] * np.column_stack(
+        [np.cos(p) * np.cos(y), np.cos(p) * np.sin(y), np.sin(p)]
+    )
+    forward = -np.column_stack([np.cos(p) * np.cos(y), np.cos(p) * np.sin(y), np.sin(p)])
+    right = np.column_stack([-np.sin(y), np.cos(y), np.zeros_like(y)])  # horizontal, defined at any pitch
+    down = np.cross(forward, right)
+    c, s = np.cos(r)[:, None], np.sin(r)[:, None]
+    x_axis, y_axis = c * right + s * down, -s * right + c * down  # [right down forward] @ Rz(roll)
+    poses = np.zeros((len(y), 4, 4))
+    poses[:, :3, 0], poses[:, :3, 1], poses[:, :3, 2], poses[:, :3, 3] = x_axis, y_axis, forward, center
+    poses[:, 3, 3] = 1.0
+    return poses
+
+
+@dataclass(frozen=True)
+class PoseSet:
+    """Poses with their protocol parameters (degrees, metres)."""
+
+    params: np.ndarray  # (N, 4): yaw, pitch, roll, radius
+    target: tuple[float, float, float]
+
+    @property
+    def poses(self) -> np.ndarray:
+        yaw, pitch, roll, radius = self.params.T
+        return look_at_poses(yaw, pitch, roll, radius, self.target)
+
+    def __len__(self) -> int:
+        return len(self.params)
+
+
+def separated(candidates: np.ndarray, tests: np.ndarray, gaps: dict[str, float]) -> np.ndarray:
+    """Mask of candidates (N, 4) lying outside the gap box of every test pose (M, 4)."""
+    if len(tests) == 0:
+        return np.ones(len(candidates), bool)
+    far = np.zeros((len(candidates), len(tests)), bool)
+    for q, gap in gaps.items():
+        i = QUANTITIES.index(q)
+        diff = np.abs(candidates[:, None, i] - tests[None, :, i])
+        if q == "yaw":
+            diff = np.minimum(diff % 360.0, 360.0 - diff % 360.0)
+        far |= diff >= gap
+    return far.all(axis=1)
+
+
+def sample_poses(
+    n: int,
+    ranges: dict[str, tuple[float, float]],
+    rng: np.random.Generator,
+    *,
+    tests: np.ndarray | None = None,
+    gaps: dict[str, float] | None = None,
+    max_camera_z: float | None = None,
+    target=(0.0, 0.0, 0.0),
+    max_rounds: int = 1000,
+) -> PoseSet:
+    """``n`` poses uniform in ``ranges`` (by rejection: separated from ``tests`` by ``gaps``,
+    camera below ``max_camera_z``). Deterministic for a given generator state."""
+    kept: list[np.ndarray] = []
+    count = 0
+    for _ in range(max_rounds):
+        batch = np.column_stack([rng.uniform(*ranges[q], size=max(2 * n, 64)) for q in QUANTITIES])
+        ok = separated(batch, tests if tests is not None else np.zeros((0, 4)), gaps or {})
+        if max_camera_z is not None:
+            ok &= target[2] + batch[:, 3] * np.sin(np.deg2rad(batch[:, 1])) <= max_camera_z
+        kept.append(batch[ok])
+        count += int(ok.sum())
+        if count >= n:
+            return PoseSet(np.concatenate(kept)[:n], tuple(target))
+    raise ValueError(
+        f"could not draw {n} poses within {ranges} separated by {gaps} from the test poses; "
+        "widen the ranges or reduce the gaps"
+    )
+
+
+def ring_poses(
+    per_class: int, yaw_range: tuple[float, float], pitch: float, roll: float, radius: float, target=(0.0, 0.0, 0.0)
+) -> PoseSet:
+    """``per_class`` yaws evenly spread over ``yaw_range`` (end excluded) at one pitch, roll, radius."""
+    yaws = yaw_range[0] + (yaw_range[1] - yaw_range[0]) * np.arange(per_class) / per_class
+    params = np.column_stack([yaws, np.full(per_class, pitch), np.full(per_class, roll), np.full(per_class, radius)])
+    return PoseSet(params, tuple(target))

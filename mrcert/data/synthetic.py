@@ -1,0 +1,117 @@
+"""Synthetic datasets: scene clouds per class and the paper's pose protocols (SPEC section 3).
+
+``metaroom_synth``: the room, the table and one of 20 objects; test poses on a ring (6 yaws
+at 2.8 m, pitch 10 deg, roll 0), training poses drawn uniformly in the protocol's ranges and
+kept apart from every test pose (see :mod:`mrcert.data.protocols`), with the camera inside
+the room. ``tabletop_synth``: one flat shape on a 1 m table; test and training poses drawn
+in the robot protocol's ranges, kept apart by its gaps. Every draw comes from a generator
+seeded by ``(data.seed, label, split)``, so adding classes or changing counts of one split
+never changes the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from mrcert.data.protocols import PoseSet, ring_poses, sample_poses
+from mrcert.errors import MrcertError
+from mrcert.scenes import metaroom, tabletop
+
+
+@dataclass(frozen=True)
+class Split:
+    """Poses (N, 4, 4) camera-to-world, protocol parameters (N, 4) and labels (N,)."""
+
+    poses: np.ndarray
+    params: np.ndarray
+    labels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+def _ranges(train: DictConfig) -> dict[str, tuple[float, float]]:
+    return {q: tuple(train[f"{q}_range"]) for q in ("yaw", "pitch", "roll", "radius")}
+
+
+class SyntheticSource:
+    """Scenes and poses of a synthetic dataset described by a ``data`` config."""
+
+    def __init__(self, data: DictConfig):
+        self.data = data
+        known = metaroom.CLASSES if data.source == "metaroom_synth" else tabletop.CLASSES
+        chosen = list(data.classes) if data.get("classes") else list(known)
+        unknown = [c for c in chosen if c not in known]
+        if unknown:
+            raise MrcertError(f"data.classes has unknown classes {unknown}; allowed: {', '.join(known)}")
+        self.classes: list[str] = sorted(chosen)
+        self._last: tuple[int, tuple[np.ndarray, np.ndarray]] | None = None
+
+    # --- scenes -----------------------------------------------------------------------------
+    @cached_property
+    def background(self) -> tuple[np.ndarray, np.ndarray]:
+        """Everything but the object: (points, colours) in the world frame."""
+        d = self.data
+        if d.source == "metaroom_synth":
+            parts = [metaroom.room(d.room_density, d.seed), metaroom.table(d.density)]
+        else:
+            parts = [tabletop.table(d.room_density)]
+        return np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
+
+    def object(self, label: int) -> tuple[np.ndarray, np.ndarray]:
+        name = self.classes[label]
+        if self.data.source == "metaroom_synth":
+            return metaroom.object_cloud(name, self.data.density)
+        return tabletop.shape_cloud(name, self.data.density)
+
+    def cloud(self, label: int) -> tuple[np.ndarray, np.ndarray]:
+        """The scene of class ``label``: background + object, world frame (the last one is kept)."""
+        if self._last is None or self._last[0] != label:
+            bp, bc = self.background
+            op, oc = self.object(label)
+            self._last = (label, (np.concatenate([bp, op]), np.concatenate([bc, oc])))
+        return self._last[1]
+
+    # --- poses ------------------------------------------------------------------------------
+    def _target(self) -> tuple[float, float, float]:
+        return tuple(float(v) for v in self.data.protocol.target)
+
+    def _test_set(self, label: int) -> PoseSet:
+        p = self.data.protocol
+        if p.test.get("ring", False):
+            return ring_poses(p.test.per_class, (0.0, 360.0), p.test.pitch, p.test.roll, p.test.radius, self._target())
+        rng = np.random.default_rng([self.data.seed, label, 0])
+        return sample_poses(p.test.per_class, _ranges(p.test), rng, target=self._target())
+
+    def _train_set(self, label: int) -> PoseSet:
+        p = self.data.protocol
+        rng = np.random.default_rng([self.data.seed, label, 1])
+        max_z = metaroom.CEILING_Z - 0.05 if self.data.source == "metaroom_synth" else None
+        gaps = OmegaConf.to_container(p.separation)
+        return sample_poses(
+            p.train.per_class,
+            _ranges(p.train),
+            rng,
+            tests=self._test_set(label).params,
+            gaps=gaps,
+            max_camera_z=max_z,
+            target=self._target(),
+        )
+
+    def split(self, name: str) -> Split:
+        """The ``train`` or ``test`` split: every class's poses, class by class."""
+        sets = [
+            (label, self._test_set(label) if name == "test" else self._train_set(label))
+            for label in range(len(self.classes))
+        ]
+        offset = float(self.data.protocol.get("yaw_offset", 0.0))
+        params = np.concatenate([s.params for _, s in sets])
+        shifted = params.copy()
+        shifted[:, 0] += offset
+        poses = PoseSet(shifted, self._target()).poses
+        labels = np.concatenate([np.full(len(s), label) for label, s in sets]).astype(np.int64)
+        return Split(poses, params, labels)

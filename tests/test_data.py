@@ -1,0 +1,292 @@
+"""Scenes and datasets: protocols, determinism, cache, crop exactness, loaders, bad files."""
+
+import json
+import pickle
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from PIL import Image
+
+from mrcert.config import CONF_DIR, validate
+from mrcert.data.datasets import Augment, load, render_poses
+from mrcert.data.protocols import look_at_poses
+from mrcert.errors import ConfigError, MrcertError
+from mrcert.geometry import matrix_to_motion
+from mrcert.projection import camera_points
+from mrcert.scenes import metaroom
+
+TINY = ["data.classes=[can,mug]", "data.room_density=0.03", "data.density=0.01"]
+
+
+def data_cfg(name: str, overrides: list[str], tmp_path):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=[f"data={name}", f"paths.outputs={tmp_path}", *overrides])
+    return cfg.data
+
+
+def pose_angles(poses: np.ndarray, target=(0, 0, 0), yaw_offset: float = 0.0) -> np.ndarray:
+    """(yaw, pitch, roll, radius) recovered from camera-to-world matrices (degrees, metres)."""
+    c = poses[:, :3, 3] - np.asarray(target)
+    r = np.linalg.norm(c, axis=1)
+    yaw = (np.rad2deg(np.arctan2(c[:, 1], c[:, 0])) - yaw_offset + 180) % 360 - 180
+    pitch = np.rad2deg(np.arcsin(c[:, 2] / r))
+    right = np.column_stack([-np.sin(np.deg2rad(yaw + yaw_offset)), np.cos(np.deg2rad(yaw + yaw_offset)), 0 * r])
+    down = np.cross(poses[:, :3, 2], right)
+    x = poses[:, :3, 0]
+    roll = np.rad2deg(np.arctan2(np.einsum("ij,ij->i", x, down), np.einsum("ij,ij->i", x, right)))
+    # Every camera looks at the target.
+    np.testing.assert_allclose(poses[:, :3, 2], -c / r[:, None], atol=1e-12)
+    return np.column_stack([yaw, pitch, roll, r])
+
+
+def test_look_at_poses_are_rigid_and_recover_their_angles(rng):
+    params = np.column_stack(
+        [rng.uniform(-180, 180, 50), rng.uniform(0, 89, 50), rng.uniform(-60, 60, 50), rng.uniform(1, 3, 50)]
+    )
+    poses = look_at_poses(*params.T)
+    R = poses[:, :3, :3]
+    np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
+    np.testing.assert_allclose(pose_angles(poses), params, atol=1e-9)
+
+
+def test_metaroom_protocol(tmp_path):
+    data = data_cfg("metaroom_synth", [*TINY, "data.protocol.train.per_class=300"], tmp_path)
+    bundle = load(data)
+    test, train = bundle.split("test"), bundle.split("train")
+    assert np.bincount(test.labels).tolist() == [6, 6] and np.bincount(train.labels).tolist() == [300, 300]
+    angles = pose_angles(test.poses)
+    np.testing.assert_allclose(angles[:, 1:], np.tile([10.0, 0.0, 2.8], (12, 1)), atol=1e-9)
+    yaws = np.sort(angles[:6, 0] % 360)
+    np.testing.assert_allclose(np.diff(yaws), 60.0, atol=1e-9)
+    tr = pose_angles(train.poses)
+    assert (tr[:, 3] >= 2.3).all() and (tr[:, 3] <= 2.9).all()
+    assert (tr[:, 1] >= 0).all() and (tr[:, 1] <= 90).all() and (np.abs(tr[:, 2]) <= 60 + 1e-9).all()
+    assert (train.poses[:, 2, 3] < metaroom.CEILING_Z).all()  # cameras inside the room
+    # No training pose is within 15 deg of a test pose in yaw, pitch and roll at once.
+    dyaw = np.abs((tr[:, None, 0] - angles[None, :, 0] + 180) % 360 - 180)
+    close = (
+        (dyaw < 15)
+        & (np.abs(tr[:, None, 1] - angles[None, :, 1]) < 15)
+        & (np.abs(tr[:, None, 2] - angles[None, :, 2]) < 15)
+    )
+    assert not close.any()
+    # ... while the ranges are otherwise covered (the rule is not vacuous).
+    assert (tr[:, 0] % 360).min() < 20 and (tr[:, 0] % 360).max() > 340 and tr[:, 2].min() < -50 and tr[:, 2].max() > 50
+
+
+def test_tabletop_protocol(tmp_path):
+    data = data_cfg(
+        "tabletop_synth", ["data.protocol.train.per_class=200", "data.density=0.01", "data.room_density=0.02"], tmp_path
+    )
+    bundle = load(data)
+    test, train = bundle.split("test"), bundle.split("train")
+    assert np.bincount(test.labels).tolist() == [19] * 6 and np.bincount(train.labels).tolist() == [200] * 6
+    for split in (test, train):
+        a = pose_angles(split.poses, yaw_offset=180.0)
+        assert (np.abs(a[:, 0]) <= 30 + 1e-9).all() and (a[:, 1] >= 35).all() and (a[:, 1] <= 65).all()
+        assert (np.abs(a[:, 2]) <= 60 + 1e-9).all() and (a[:, 3] >= 0.35).all() and (a[:, 3] <= 0.45).all()
+        assert (split.poses[:, 0, 3] < 0).all()  # the camera is on the robot's side
+    for label in range(6):
+        te = pose_angles(test.poses[test.labels == label], yaw_offset=180.0)
+        tr = pose_angles(train.poses[train.labels == label], yaw_offset=180.0)
+        d = np.abs(tr[:, None, :] - te[None, :, :])
+        close = (d[..., 0] < 10) & (d[..., 1] < 5) & (d[..., 2] < 20) & (d[..., 3] < 0.016)
+        assert not close.any()
+
+
+def test_generation_is_deterministic_and_seeded(tmp_path):
+    a, b = load(data_cfg("metaroom_synth", TINY, tmp_path)), load(data_cfg("metaroom_synth", TINY, tmp_path))
+    for label in (0, 1):
+        pa, ca = a.cloud(label)
+        pb, cb = b.cloud(label)
+        assert np.array_equal(pa, pb) and np.array_equal(ca, cb)
+    assert np.array_equal(a.split("train").poses, b.split("train").poses)
+    c = load(data_cfg("metaroom_synth", [*TINY, "data.seed=1"], tmp_path))
+    assert not np.array_equal(a.split("train").poses, c.split("train").poses)
+
+
+def test_cache_hits_on_same_config_and_misses_on_change(tmp_path):
+    data = data_cfg("metaroom_synth", [*TINY, "data.protocol.train.per_class=3"], tmp_path)
+    first = load(data)
+    images = np.array(first.train().images)
+    assert first.cache_info["train"]["hit"] is False
+    second = load(data)
+    again = second.train()
+    assert second.cache_info["train"]["hit"] is True and np.array_equal(np.array(again.images), images)
+    # Images are stored losslessly: the cache equals a fresh float render.
+    split = second.split("train")
+    fresh = render_poses(second.cloud(0), split.poses[:2], second.K, 90, 160, 1.0)
+    assert np.array_equal(fresh, images[:2])
+    changed = load(
+        data_cfg("metaroom_synth", [*TINY, "data.protocol.train.per_class=3", "data.density=0.012"], tmp_path)
+    )
+    changed.train()
+    assert changed.cache_info["train"]["hit"] is False
+    assert changed.cache_info["train"]["folder"] != first.cache_info["train"]["folder"]
+    aug = load(data)
+    augmented = aug.train(Augment("rz", 0.122173))
+    assert aug.cache_info["train-rz-aug"]["hit"] is False and not np.array_equal(np.array(augmented.images), images)
+
+
+def test_crop_is_exact_within_its_bound_and_falls_back_beyond(tmp_path, rng):
+    bundle = load(data_cfg("metaroom_synth", TINY, tmp_path))
+    sample = bundle.samples()[0]
+    assert sample.label == 0 and sample.K[0, 0] == 386.274 and (sample.height, sample.width) == (90, 160)
+    assert len(sample.crop_points) < 0.7 * len(sample.points)
+    full = type(sample)(sample.points, sample.colors, sample.K, 90, 160, 0)  # no crop
+    within = torch.tensor(rng.uniform(-1, 1, (40, 6)) * [0.28, 0.28, 0.28, 0.28, 0.28, 0.28])
+    within = within[sample.within_bound(within)]
+    assert len(within) > 20
+    beyond = torch.tensor(rng.uniform(-1, 1, (10, 6)) * [0.8, 0.8, 0.8, 0.8, 0.8, 0.8])
+    for motions in (within, beyond, torch.cat([within[:5], beyond[:5]])):
+        img_c, dep_c = sample.render(motions)
+        img_f, dep_f = full.render(motions)
+        assert torch.equal(img_c, img_f) and torch.equal(dep_c, dep_f)
+    # The sample equals the dataset's clean test image at zero motion.
+    img, _ = sample.render(torch.zeros(1, 6, dtype=torch.float64))
+    assert torch.equal(
+        (img[0] * 255).round().to(torch.uint8).permute(1, 2, 0), torch.from_numpy(np.array(bundle.test().images[0]))
+    )
+
+
+def test_quick_metaroom_has_no_holes(tmp_path):
+    """At the quick profile's density every pixel of a test image is covered by some surface."""
+    bundle = load(data_cfg("metaroom_synth", ["data.classes=[mug,teddy_bear]"], tmp_path))
+    test = bundle.test()
+    assert np.array(test.images).max(axis=-1).min() < 255  # sanity: uint8 white would be the background
+    assert not (np.array(test.images) == 255).all(axis=-1).any()
+
+
+def write_release(root, classes=("apple", "bowl")):
+    """A tiny copy of the released layout, with a known cloud and pose per certify sample."""
+    rng = np.random.default_rng(0)
+    base = root / "metaroom_tz_vanilla"
+    records = []
+    for c in classes:
+        for split in ("train", "test"):
+            (base / split / c).mkdir(parents=True)
+            for k in range(2):
+                Image.fromarray(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8)).save(base / split / c / f"{k}.png")
+        (base / "certify" / c).mkdir(parents=True)
+        for k in range(2):
+            pose = look_at_poses(60.0 * k, 10.0, 0.0, 2.8)[0]
+            cloud = np.column_stack([rng.uniform(-1, 1, (3000, 3)) * [1.0, 1.0, 0.5], rng.uniform(0, 1, (3000, 3))])
+            rec = {
+                "intrinsic_matrix": np.array([[3090.192, 0, 640], [0, 3090.192, 360], [0, 0, 1]]),
+                "pose": pose,
+                "point_cloud": cloud,
+            }
+            with open(base / "certify" / c / f"{k:03d}.pkl", "wb") as f:
+                pickle.dump(rec, f)
+            records.append(rec)
+    return records
+
+
+def test_released_layout_loader(tmp_path):
+    records = write_release(tmp_path)
+    bundle = load(data_cfg("metaroom", [f"data.path={tmp_path}", "motion=tz"], tmp_path))
+    assert bundle.classes == ["apple", "bowl"]
+    assert bundle.train().labels.tolist() == [0, 0, 1, 1] and len(bundle.test()) == 4
+    samples = bundle.samples()
+    assert samples.labels.tolist() == [0, 0, 1, 1]
+    for i, rec in enumerate(records):
+        s = samples[i]
+        assert s.label == i // 2
+        np.testing.assert_allclose(s.K.numpy(), [[386.274, 0, 80], [0, 386.274, 45], [0, 0, 1]])
+        expected = camera_points(
+            torch.from_numpy(rec["point_cloud"][:, :3]), matrix_to_motion(torch.from_numpy(rec["pose"]))
+        )
+        assert torch.equal(s.points, expected)
+
+
+def test_released_layout_refuses_code_in_pickles_and_names_missing_folders(tmp_path):
+    write_release(tmp_path)
+    evil = tmp_path / "metaroom_tz_vanilla" / "certify" / "apple" / "000.pkl"
+    evil.write_bytes(b"cos\nsystem\n(S'echo pwned'\ntR.")
+    with pytest.raises(MrcertError, match="refusing to load os.system"):
+        load(data_cfg("metaroom", [f"data.path={tmp_path}"], tmp_path)).samples()[0]
+    with pytest.raises(MrcertError, match="metaroom_rx_vanilla.*does not exist"):
+        load(data_cfg("metaroom", [f"data.path={tmp_path}", "motion=rx"], tmp_path))
+    with pytest.raises(MrcertError, match="METAROOM_DIR"):
+        load(data_cfg("metaroom", [], tmp_path))
+
+
+def write_custom(tmp_path, points=None, colors=None, poses=None, dtype=np.float64):
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (4000, 3)) if points is None else points
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts.astype(dtype)))
+    if colors is not None:
+        pcd.point.colors = o3d.core.Tensor(colors)
+    cloud = tmp_path / "scan.ply"
+    o3d.t.io.write_point_cloud(str(cloud), pcd)
+    if poses is None:
+        pose = look_at_poses(30.0, 20.0, 0.0, 3.0)[0].tolist()
+        poses = {
+            "classes": ["a", "b"],
+            "poses": [{"split": s, "label": c, "pose": pose} for s in ("train", "test") for c in ("a", "b")],
+        }
+    path = tmp_path / "poses.json"
+    path.write_text(json.dumps(poses))
+    return [f"data.path={cloud}", f"data.poses={path}"]
+
+
+def test_custom_scene_renders_its_poses(tmp_path):
+    rng = np.random.default_rng(1)
+    colors = rng.integers(0, 256, (4000, 3)).astype(np.uint8)
+    bundle = load(data_cfg("custom", write_custom(tmp_path, colors=colors), tmp_path))
+    assert bundle.classes == ["a", "b"] and bundle.train().labels.tolist() == [0, 1]
+    np.testing.assert_allclose(bundle.points, bundle.points)  # loaded
+    assert bundle.colors.max() <= 1.0 and np.allclose(bundle.colors * 255, colors, atol=1e-4)
+    assert len(bundle.samples()) == 2
+
+
+@pytest.mark.parametrize(
+    "case,pattern",
+    [
+        ("missing", "does not exist"),
+        ("empty", "has no points"),
+        ("nan", "NaN or infinite coordinates"),
+        ("colors", "colours outside"),
+        ("rigid", "not a rigid transform"),
+        ("label", "label 'c' is not one of the classes"),
+    ],
+)
+def test_custom_scene_bad_files_get_clear_errors(case, pattern, tmp_path):
+    pts = np.random.default_rng(0).uniform(-1, 1, (100, 3))
+    pose = np.eye(4).tolist()
+    kwargs = {}
+    if case == "nan":
+        pts[5, 1] = np.nan
+        kwargs["points"] = pts
+    if case == "colors":
+        kwargs["colors"] = np.full((4000, 3), 300.0, np.float32)
+    if case == "rigid":
+        bad = (np.eye(4) * [2, 1, 1, 1]).tolist()
+        kwargs["poses"] = {
+            "classes": ["a"],
+            "poses": [{"split": "train", "label": "a", "pose": bad}, {"split": "test", "label": "a", "pose": pose}],
+        }
+    if case == "label":
+        kwargs["poses"] = {"classes": ["a"], "poses": [{"split": "train", "label": "c", "pose": pose}]}
+    overrides = write_custom(tmp_path, **kwargs)
+    if case == "missing":
+        overrides[0] = f"data.path={tmp_path / 'nope.ply'}"
+    if case == "empty":
+        (tmp_path / "empty.ply").write_text(
+            "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+            "property float y\nproperty float z\nend_header\n"
+        )
+        overrides[0] = f"data.path={tmp_path / 'empty.ply'}"
+    with pytest.raises(MrcertError, match=pattern):
+        load(data_cfg("custom", overrides, tmp_path))
+
+
+def test_focal_length_must_be_positive(tmp_path):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["data=custom", "data.path=a.ply", "data.poses=p.json", "data.image.fx=0"])
+    with pytest.raises(ConfigError, match=r"data.image.fx=0 is not allowed: a finite number > 0"):
+        validate(cfg)

@@ -1,0 +1,172 @@
+"""Training: loss goes down and is tracked, resume is exact, checkpoints are found, augmentation is real."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from mrcert.__main__ import run_task
+from mrcert.checkpoints import find_checkpoint, load_classifier
+from mrcert.config import CONF_DIR
+from mrcert.data.datasets import Augment, load
+from mrcert.errors import MrcertError
+from mrcert.geometry import matrix_to_motion
+from mrcert.models import build_model
+from mrcert.projection import camera_points, project
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY_TRAIN = [
+    "task=train",
+    "data=metaroom_synth",
+    "model=small_cnn",
+    "model.net.width=8",
+    "data.classes=[can,mug,apple]",
+    "data.room_density=0.03",
+    "data.density=0.01",
+    "data.protocol.train.per_class=16",
+    "task.batch_size=8",
+    "task.lr=0.02",
+]
+
+
+def compose_cfg(overrides, outputs):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=[*overrides, f"paths.outputs={outputs}"])
+
+
+def train_in_process(overrides, outputs, name):
+    cfg = compose_cfg(overrides, outputs)
+    return run_task(cfg, outputs / "runs" / name), cfg
+
+
+def store(outputs):
+    mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+    return mlflow.MlflowClient()
+
+
+def test_tiny_run_lowers_the_loss_and_tracks_metrics_and_checkpoints(tmp_path):
+    result, _ = train_in_process([*TINY_TRAIN, "task.epochs=4"], tmp_path, "a")
+    client = store(tmp_path)
+    (run,) = client.search_runs([client.get_experiment_by_name("mrcert").experiment_id])
+    assert run.info.status == "FINISHED"
+    loss = [m.value for m in client.get_metric_history(run.info.run_id, "train_loss")]
+    assert len(loss) == 4 and loss[-1] < loss[0]
+    for key in ("train_acc", "val_acc", "lr", "epoch_seconds"):
+        assert len(client.get_metric_history(run.info.run_id, key)) == 4
+    tags = run.data.tags
+    assert (
+        tags["mrcert.task"],
+        tags["mrcert.model"],
+        tags["mrcert.dataset"],
+        tags["mrcert.axis"],
+        tags["mrcert.variant"],
+    ) == ("train", "small_cnn", "metaroom_synth", "tz", "vanilla")
+    arts = {a.path for a in client.list_artifacts(run.info.run_id, "checkpoints")}
+    assert arts == {"checkpoints/best.pt", "checkpoints/last.pt"}
+    assert result["best_val_acc"] == max(m.value for m in client.get_metric_history(run.info.run_id, "val_acc"))
+
+
+def weights(path: Path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=True)["model"]
+
+
+def test_killed_run_resumes_to_the_same_weights_in_the_same_mlflow_run(tmp_path):
+    args = [*TINY_TRAIN, "task.epochs=6"]
+    full, _ = train_in_process(args, tmp_path / "full", "full")
+    reference = weights(Path(full["checkpoint"]).with_name("last.pt"))
+
+    outputs = tmp_path / "killed"
+    env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.time() + 240
+    while not list(outputs.glob("runs/train/*/last.pt")) and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    (ckpt,) = outputs.glob("runs/train/*/last.pt")
+    interrupted_at = torch.load(ckpt, weights_only=True)["epoch"]
+    assert interrupted_at < 5, "the run finished before it could be killed"
+
+    done = subprocess.run(
+        [sys.executable, "-m", "mrcert", *args, "task.resume=true"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    client = store(outputs)
+    (run,) = client.search_runs([client.get_experiment_by_name("mrcert").experiment_id])
+    assert run.info.status == "FINISHED"
+    assert len(client.get_metric_history(run.info.run_id, "train_loss")) == 6
+    resumed = weights(ckpt)
+    assert resumed.keys() == reference.keys()
+    assert all(torch.equal(resumed[k], reference[k]) for k in reference)
+
+
+def test_checkpoint_lookup_finds_the_matching_run_and_names_the_command_when_none(tmp_path):
+    train_in_process([*TINY_TRAIN, "task.epochs=1"], tmp_path, "vanilla")
+    train_in_process([*TINY_TRAIN, "task.epochs=1", "model.variant=augmented"], tmp_path, "augmented")
+    for variant in ("vanilla", "augmented"):
+        cfg = compose_cfg([*TINY_TRAIN, f"model.variant={variant}"], tmp_path)
+        path = find_checkpoint(cfg)
+        assert torch.load(path, weights_only=True)["variant"] == variant
+        model = load_classifier(cfg, 3, torch.device("cpu"))
+        assert model(torch.rand(2, 3, 90, 160)).shape == (2, 3)
+    missing = compose_cfg([*TINY_TRAIN, "motion=rx"], tmp_path)
+    with pytest.raises(
+        MrcertError,
+        match="no finished train run.*axis=rx.*mrcert task=train data=metaroom_synth "
+        "profile=quick model=small_cnn motion=rx model.variant=vanilla",
+    ):
+        find_checkpoint(missing)
+    with pytest.raises(MrcertError, match="cannot be fetched from MLflow"):
+        find_checkpoint(
+            compose_cfg([*TINY_TRAIN, "model.checkpoint=runs:/0123456789abcdef/checkpoints/best.pt"], tmp_path)
+        )
+    with pytest.raises(MrcertError, match="does not exist"):
+        find_checkpoint(compose_cfg([*TINY_TRAIN, f"model.checkpoint={tmp_path / 'nope.pt'}"], tmp_path))
+    resnet = [o for o in TINY_TRAIN if not o.startswith("model")] + ["model=resnet18", f"model.checkpoint={path}"]
+    wrong = compose_cfg(resnet, tmp_path)
+    with pytest.raises(MrcertError, match="holds a small_cnn for 3 classes, but model=resnet18"):
+        load_classifier(wrong, 3, torch.device("cpu"))
+
+
+def test_augmentation_changes_images_and_equals_the_projection_at_the_drawn_motions(tmp_path):
+    cfg = compose_cfg([*TINY_TRAIN, "data.protocol.train.per_class=4"], tmp_path)
+    bundle = load(cfg.data)
+    augment = Augment("rz", 0.122173, seed=0)
+    vanilla, augmented = np.array(bundle.train().images), np.array(bundle.train(augment).images)
+    assert (vanilla != augmented).any(axis=-1).mean(axis=(1, 2)).min() > 0.05
+    split, drawn = bundle.split("train"), augment.motions(len(vanilla))
+    assert (drawn[:, [0, 1, 2, 3, 4]] == 0).all()
+    for i in range(len(vanilla)):
+        points, colors = bundle.cloud(int(split.labels[i]))
+        cam = camera_points(torch.from_numpy(points), matrix_to_motion(torch.from_numpy(split.poses[i])))
+        img, _ = project(cam, torch.from_numpy(colors), bundle.K, drawn[i : i + 1], 90, 160)
+        expected = (img[0] * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+        assert (expected == augmented[i]).all(axis=-1).mean() > 0.995  # equal up to float rounding at pixel edges
+    many = Augment("tx", 0.05, seed=3).motions(20000)[:, 0]
+    assert abs(float(many.mean())) < 0.002 and abs(float(many.std()) - 0.05) < 0.002
+
+
+def test_models_normalise_first_and_build_from_config(tmp_path):
+    for arch in ("resnet18", "resnet50", "small_cnn"):
+        cfg = compose_cfg([f"model={arch}"], tmp_path)
+        model = build_model(cfg.model, 20)
+        assert model(torch.rand(2, 3, 90, 160)).shape == (2, 20)
+        assert torch.equal(model[0](torch.full((1, 3, 2, 2), 0.5)), torch.zeros(1, 3, 2, 2))
+    bad = compose_cfg(["model=small_cnn", "model.net._target_=torch.nn.NoSuchLayer"], tmp_path)
+    with pytest.raises(MrcertError, match="cannot build model.net"):
+        build_model(bad.model, 3)
