@@ -2,6 +2,8 @@
 SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
+MRCERT := $(VENV)/bin/mrcert
+PROFILE ?= quick
 STAMP := $(VENV)/.installed
 PORT ?= 5000
 OUTPUTS ?= outputs
@@ -9,7 +11,7 @@ OUTPUTS ?= outputs
 THREADS ?= 2
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-full bench ui clean lint
+.PHONY: help install demo reproduce-tables test test-full bench ui server clean lint
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -24,8 +26,17 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP) ## create .venv and install mrcert with its dependencies (idempotent)
 
-demo: $(STAMP) ## render the built-in test scene's contact sheet, tracked in MLflow
-	$(VENV)/bin/mrcert task=render
+demo: $(STAMP) ## quick pipeline: data, two small models, certify + attack a subset, print the table
+	$(MRCERT) -m +experiment=demo task=train
+	$(MRCERT) -m +experiment=demo task=certify,smooth,attack
+	$(MRCERT) task=tables task.archs=[small_cnn] task.axes=[tz]
+
+reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished work is skipped
+	for e in table3 table1 tabletop; do $(MRCERT) -m +experiment=$$e profile=$(PROFILE) task=train || exit 1; done
+	$(MRCERT) -m +experiment=table3 profile=$(PROFILE) task=certify,smooth,attack
+	$(MRCERT) -m +experiment=table1 profile=$(PROFILE) task=smooth,attack
+	$(MRCERT) -m +experiment=tabletop profile=$(PROFILE) task=smooth,attack
+	$(MRCERT) task=tables profile=$(PROFILE) task.show_paper=true
 
 test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)
 	OMP_NUM_THREADS=$(THREADS) NUMBA_NUM_THREADS=$(THREADS) $(PY) -m pytest -q
@@ -35,6 +46,7 @@ test-full: $(STAMP) ## every test, the slow ones too
 
 bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run
 	$(PY) benchmarks/projection.py --threads $(THREADS)
+	$(PY) benchmarks/certify.py --threads $(THREADS)
 
 ui: $(STAMP) ## MLflow UI on the project's store (http://127.0.0.1:5000, PORT=... to change)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow.db \

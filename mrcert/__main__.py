@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 from mrcert import config as mrcert_config
 from mrcert.errors import MrcertError
 from mrcert.tasks import TASKS, RunContext
-from mrcert.tracking import fail_parent, task_run
+from mrcert.tracking import fail_parent, finished_run, task_run
 
 log = logging.getLogger("mrcert")
 
@@ -27,6 +27,10 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     """
     try:
         mrcert_config.validate(cfg)
+        done = finished_run(cfg)
+        if done is not None:
+            log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
+            return dict(done.data.metrics)
         func = TASKS[cfg.task.name].load()
         with task_run(cfg, output_dir) as tracker:
             result = func(cfg, RunContext(tracker.output_dir, tracker))

@@ -69,6 +69,8 @@ def find_checkpoint(cfg: DictConfig) -> Path:
 
     mlflow = configure(cfg.tracking)
     wanted = {k: v for k, v in run_tags(cfg).items() if k != "mrcert.task"} | {"mrcert.task": "train"}
+    if cfg.model.variant == "vanilla":
+        wanted.pop("mrcert.axis", None)  # a vanilla model never saw a motion: any axis's run serves
     exp = mlflow.MlflowClient().get_experiment_by_name(cfg.tracking.experiment)
     runs = (
         []

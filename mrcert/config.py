@@ -62,7 +62,8 @@ def _positive_int(v: Any) -> bool:
 
 
 def _axis(v: Any) -> bool:
-    return v in AXES
+    """One axis, or several joined by '+' (a multi-axis smoothing's name)."""
+    return isinstance(v, str) and all(a in AXES for a in v.split("+"))
 
 
 RULES: dict[str, Rule] = {
@@ -80,7 +81,7 @@ RULES: dict[str, Rule] = {
     "density": (_positive, "a finite number > 0 (metres)"),
     "num": (_positive_int, "an integer >= 1"),
     "k": (_positive_int, "an integer >= 1"),
-    "axis": (_axis, f"one of {', '.join(AXES)}"),
+    "axis": (_axis, f"one of {', '.join(AXES)} (or several joined by '+')"),
     "axes": (
         lambda v: isinstance(v, list) and len(v) > 0 and all(_axis(a) for a in v),
         f"a non-empty list of axes from {', '.join(AXES)}",
@@ -102,6 +103,17 @@ RULES: dict[str, Rule] = {
     "weight_decay": (lambda v: _number(v) and v >= 0, "a finite number >= 0"),
     "step_size": (_positive_int, "an integer >= 1"),
     "gamma": (lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
+    "n": (_positive_int, "an integer >= 1"),
+    "n0": (_positive_int, "an integer >= 1"),
+    "skip": (_positive_int, "an integer >= 1"),
+    "max": (_positive_int, "an integer >= 1, or null for all"),
+    "shard": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+    "num_shards": (_positive_int, "an integer >= 1"),
+    "crop_sigmas": (_positive, "a finite number > 0"),
+    "sigmas": (
+        lambda v: isinstance(v, list) and len(v) > 0 and all(_positive(x) for x in v),
+        "a non-empty list of finite numbers > 0",
+    ),
 }
 RANGE_RULE: Rule = (
     lambda v: isinstance(v, list) and len(v) == 2 and all(_number(x) for x in v) and v[0] <= v[1],
@@ -112,6 +124,8 @@ RANGE_RULE: Rule = (
 def rule_for(path: str) -> Rule | None:
     """The rule for a dotted key, by its last component (``*_range`` keys share one rule)."""
     name = path.rsplit(".", 1)[-1]
+    if path.startswith("task.tags."):
+        return None
     return RANGE_RULE if name.endswith("_range") else RULES.get(name)
 
 
@@ -136,14 +150,17 @@ def validate(cfg: DictConfig) -> None:
         data = plain(cfg, throw_on_missing=True)
     except MissingMandatoryValue as exc:
         raise ConfigError(exc.full_key, "???", "a value must be given") from None
-    task = data.get("task", {}).get("name")
-    if task not in TASKS:
-        raise ConfigError("task.name", task, f"one of {', '.join(TASKS)}")
+    name = data.get("task", {}).get("name")
+    if name not in TASKS:
+        raise ConfigError("task.name", name, f"one of {', '.join(TASKS)}")
     for path, value in _leaves(data):
         rule = rule_for(path)
         if rule is not None and value is not None and not rule[0](value):
             raise ConfigError(path, value, rule[1])
-    extent = data.get("task", {}).get("extent") or {}
+    task = data.get("task", {})
+    if task.get("num_shards") is not None and not 0 <= task.get("shard", 0) < task["num_shards"]:
+        raise ConfigError("task.shard", task.get("shard"), f"an integer in [0, task.num_shards={task['num_shards']})")
+    extent = task.get("extent") or {}
     for axis, value in extent.items():
         if axis not in AXES or not _number(value) or value < 0:
             raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")

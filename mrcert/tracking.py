@@ -91,6 +91,9 @@ def run_tags(cfg: DictConfig) -> dict[str, str]:
         "mrcert.variant": select("model.variant"),
         "mrcert.profile": select("profile.name"),
     }
+    overrides = OmegaConf.select(cfg, "task.tags", default=None)  # e.g. an imported log's metadata
+    if overrides:
+        tags.update(OmegaConf.to_container(overrides, resolve=True))
     return {k: str(v) for k, v in tags.items() if v is not None}
 
 
@@ -99,13 +102,22 @@ VOLATILE = ("task.resume",)
 
 
 def config_key(cfg: DictConfig) -> str:
-    """Hash of what a run computes: the config without tracking, paths, device and volatile keys."""
+    """Hash of what a run computes: the config keys its task uses (all but tracking, paths and
+    device when it does not say), without volatile keys. A vanilla model's key ignores the
+    motion axis, which it never sees."""
     from mrcert.config import plain
+    from mrcert.tasks import TASKS
 
+    uses = TASKS[cfg.task.name].uses
+    if cfg.task.name == "train" and OmegaConf.select(cfg, "model.variant") == "vanilla":
+        uses = tuple(u for u in uses if u != "motion")
     data = {
         k: v
         for k, v in flatten(plain(cfg)).items()
-        if k not in VOLATILE and not k.startswith(("tracking.", "paths.")) and k != "device"
+        if k not in VOLATILE
+        and not k.startswith(("tracking.", "paths.", "model.checkpoint"))
+        and k != "device"
+        and (uses is None or k.split(".", 1)[0] in uses)
     }
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -158,18 +170,26 @@ def fail_parent(cfg: DictConfig) -> None:
         configure(cfg.tracking).MlflowClient().set_terminated(info["run_id"], "FAILED")
 
 
-def unfinished_run(cfg: DictConfig, experiment_id: str):
-    """The latest run of this same config (by :func:`config_key`) that did not finish, if any."""
+def same_config_run(cfg: DictConfig, experiment_id: str, finished: bool):
+    """The latest FINISHED (or, with ``finished=False``, not finished) run of this config."""
     import mlflow
 
+    status = "=" if finished else "!="
     runs = mlflow.search_runs(
         experiment_ids=[experiment_id],
-        filter_string=f"tags.`mrcert.config_key` = '{config_key(cfg)}' and attributes.status != 'FINISHED'",
+        filter_string=f"tags.`mrcert.config_key` = '{config_key(cfg)}' and attributes.status {status} 'FINISHED'",
         order_by=["attributes.start_time DESC"],
         max_results=1,
         output_format="list",
     )
     return runs[0] if runs else None
+
+
+def finished_run(cfg: DictConfig):
+    """A FINISHED run with this config, when ``skip_finished`` is on (reproductions), else None."""
+    if not (cfg.get("skip_finished") and cfg.tracking.enabled):
+        return None
+    return same_config_run(cfg, ensure_experiment(cfg.tracking), finished=True)
 
 
 @contextmanager
@@ -192,7 +212,7 @@ def task_run(cfg: DictConfig, output_dir: Path) -> Iterator[Tracker]:
     parent_id = info.get("run_id")
     mlflow = configure(cfg.tracking)
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
-    previous = unfinished_run(cfg, experiment_id) if cfg.task.get("resume") else None
+    previous = same_config_run(cfg, experiment_id, finished=False) if cfg.task.get("resume") else None
     if previous is not None:
         output_dir = Path(previous.data.tags["mrcert.output_dir"])
         log.info("resuming MLflow run %s from %s", previous.info.run_id, output_dir)

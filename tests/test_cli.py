@@ -9,7 +9,7 @@ import mlflow
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-FAST = ["task=render", "data.density=0.03", "task.num=2", "task.axes=[tx,rz]"]
+FAST = ["task=render", "data=testscene", "data.density=0.03", "task.num=2", "task.axes=[tx,rz]"]
 
 
 def mrcert(args: list[str], outputs: Path, check: bool = True) -> subprocess.CompletedProcess:
@@ -79,7 +79,10 @@ def test_bad_value_stops_with_a_clear_message_and_no_traceback(tmp_path):
 
 def test_help_lists_the_tasks(tmp_path):
     out = mrcert(["--help"], tmp_path).stdout
-    assert "Tasks:" in out and "render" in out and "task: render" in out
+    assert "Tasks:" in out and "task: attack, certify, import, render, smooth, tables, train" in out
+    tasks = out.split("Tasks:")[1]
+    for name in ("render", "train", "certify", "smooth", "attack", "tables", "import"):
+        assert f"\n  {name} " in tasks
 
 
 def test_tracking_off_still_writes_outputs(tmp_path):

@@ -124,11 +124,14 @@ def test_checkpoint_lookup_finds_the_matching_run_and_names_the_command_when_non
         assert torch.load(path, weights_only=True)["variant"] == variant
         model = load_classifier(cfg, 3, torch.device("cpu"))
         assert model(torch.rand(2, 3, 90, 160)).shape == (2, 3)
-    missing = compose_cfg([*TINY_TRAIN, "motion=rx"], tmp_path)
+    # A vanilla model never saw a motion, so the tz run serves rx too; an augmented one does not.
+    rx_vanilla = find_checkpoint(compose_cfg([*TINY_TRAIN, "motion=rx"], tmp_path))
+    assert torch.load(rx_vanilla, weights_only=True)["variant"] == "vanilla"
+    missing = compose_cfg([*TINY_TRAIN, "motion=rx", "model.variant=augmented"], tmp_path)
     with pytest.raises(
         MrcertError,
         match="no finished train run.*axis=rx.*mrcert task=train data=metaroom_synth "
-        "profile=quick model=small_cnn motion=rx model.variant=vanilla",
+        "profile=quick model=small_cnn motion=rx model.variant=augmented",
     ):
         find_checkpoint(missing)
     with pytest.raises(MrcertError, match="cannot be fetched from MLflow"):

@@ -115,11 +115,11 @@ class DataBundle(ABC):
         self.background = float(data.image.background)
         self.cache_info: dict[str, dict[str, Any]] = {}
 
-    def crop_args(self) -> dict[str, Any]:
-        crop = self.data.get("crop")
-        if not crop:
-            return {}
-        return {"max_translation": float(crop.max_translation), "max_rotation": float(crop.max_rotation)}
+    def crop_args(self, crop: tuple[float, float] | None = None) -> dict[str, Any]:
+        """Crop bound for test samples: ``crop`` (max translation, max rotation) or ``data.crop``."""
+        if crop is None and self.data.get("crop"):
+            crop = (float(self.data.crop.max_translation), float(self.data.crop.max_rotation))
+        return {} if crop is None else {"max_translation": crop[0], "max_rotation": crop[1]}
 
     @abstractmethod
     def train(self, augment: Augment | None = None) -> ImageSet:
@@ -130,8 +130,10 @@ class DataBundle(ABC):
         """Clean test images."""
 
     @abstractmethod
-    def samples(self, downsampling: tuple[int, float] | None = None) -> SampleSet:
-        """Re-renderable test samples, in the order of :meth:`test`."""
+    def samples(
+        self, downsampling: tuple[int, float] | None = None, crop: tuple[float, float] | None = None
+    ) -> SampleSet:
+        """Re-renderable test samples, in the order of :meth:`test` (``crop`` overrides ``data.crop``)."""
 
 
 class PosedCloudData(DataBundle):
@@ -185,7 +187,9 @@ class PosedCloudData(DataBundle):
     def test(self) -> ImageSet:
         return self._images("test", None)
 
-    def samples(self, downsampling: tuple[int, float] | None = None) -> SampleSet:
+    def samples(
+        self, downsampling: tuple[int, float] | None = None, crop: tuple[float, float] | None = None
+    ) -> SampleSet:
         split = self.split("test")
 
         def make(i: int) -> TestSample:
@@ -201,7 +205,7 @@ class PosedCloudData(DataBundle):
                 label,
                 self.background,
                 downsampling=downsampling,
-                **self.crop_args(),
+                **self.crop_args(crop),
             )
 
         return SampleSet(split.labels, make)

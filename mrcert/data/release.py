@@ -89,7 +89,9 @@ class ReleasedMetaRoom(DataBundle):
     def test(self) -> ImageSet:
         return ImageSet(*_image_folder(self.folder / "test", self.classes), self.classes)
 
-    def samples(self, downsampling: tuple[int, float] | None = None) -> SampleSet:
+    def samples(
+        self, downsampling: tuple[int, float] | None = None, crop: tuple[float, float] | None = None
+    ) -> SampleSet:
         files = [
             (label, p)
             for label, c in enumerate(self.classes)
@@ -116,7 +118,7 @@ class ReleasedMetaRoom(DataBundle):
                 label,
                 self.background,
                 downsampling=downsampling,
-                **self.crop_args(),
+                **self.crop_args(crop),
             )
 
         return SampleSet(np.array([label for label, _ in files]), make)

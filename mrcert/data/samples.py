@@ -60,6 +60,8 @@ def downsample(points: np.ndarray, colors: np.ndarray, every_k: int, voxel: floa
 class TestSample:
     """A test image's scene in its camera frame, ready to render under motions."""
 
+    __test__ = False  # not a pytest test class, whatever its name
+
     points: torch.Tensor  # (N, 3) float64, camera frame of the test pose
     colors: torch.Tensor  # (N, C) float32
     K: torch.Tensor

@@ -30,13 +30,32 @@ class RunContext:
 class Task:
     target: str
     summary: str
+    uses: tuple[str, ...] | None = None
+    """Top-level config keys that determine the result (None: all); they make the config key."""
 
     def load(self) -> Callable[[DictConfig, RunContext], dict[str, Any]]:
         module, func = self.target.split(":")
         return getattr(importlib.import_module(module), func)
 
 
+EVALUATION = ("task", "data", "model", "motion", "seed", "profile")
+
 TASKS: dict[str, Task] = {
     "render": Task("mrcert.tasks.render:run", "render a scene under motions, or a dataset's images into the cache"),
-    "train": Task("mrcert.tasks.train:run", "train a vanilla or motion-augmented base classifier"),
+    "train": Task(
+        "mrcert.tasks.train:run",
+        "train a vanilla or motion-augmented base classifier",
+        ("task", "data", "model", "motion", "seed", "profile"),
+    ),
+    "certify": Task(
+        "mrcert.tasks.certify:run", "CERTIFY each test image of the smoothed classifier (certify.tsv)", EVALUATION
+    ),
+    "smooth": Task("mrcert.tasks.smooth:run", "smoothed benign accuracy: PREDICT at each test pose", EVALUATION),
+    "attack": Task(
+        "mrcert.tasks.attack:run", "K-perturbed empirical robust accuracy, base and smoothed", (*EVALUATION, "attack")
+    ),
+    "tables": Task("mrcert.tasks.tables:run", "the paper's tables and figure from finished MLflow runs"),
+    "import": Task(
+        "mrcert.tasks.importer:run", "record a certify log computed elsewhere as an MLflow run", ("task", "motion")
+    ),
 }

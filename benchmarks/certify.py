@@ -1,0 +1,98 @@
+"""Seconds per certified image, split into projection, model and overhead, beside the model alone.
+
+ResNet-18 (20 classes), 160x90, CERTIFY with n0 + n = 100 + 1000 in batches of 200 on a test
+sample of the quick synthetic MetaRoom (cropped for the axis's smoothing, exact), on the
+given threads; the reference is the same 1100 forward passes on random images, measured in
+the same run. Medians over repeats. Usage: python benchmarks/certify.py [--axis tz] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--axis", default="tz")
+    ap.add_argument("--arch", default="resnet18")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--profile", default="quick", choices=["quick", "paper"])
+    args = ap.parse_args()
+    os.environ["OMP_NUM_THREADS"] = os.environ["NUMBA_NUM_THREADS"] = str(args.threads)
+
+    import torch
+    from hydra import compose, initialize_config_dir
+
+    from mrcert.config import CONF_DIR
+    from mrcert.data.datasets import load
+    from mrcert.models import build_model
+    from mrcert.smoothing import MotionSmoothedClassifier, SmoothingDistribution, image_generator
+
+    torch.set_num_threads(args.threads)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(
+            "config",
+            overrides=[
+                "data=metaroom_synth",
+                f"profile={args.profile}",
+                f"motion={args.axis}",
+                f"model={args.arch}",
+                "data.classes=[mug]",
+                f"paths.outputs={tempfile.mkdtemp()}",
+            ],
+        )
+    bundle = load(cfg.data)
+    dist = SmoothingDistribution.from_config(cfg.motion)
+    sample = bundle.samples(crop=dist.crop_bound(6.0))[0]
+    model = build_model(cfg.model, 20).eval()
+    batches = [100] + [200] * 5  # n0 = 100, then n = 1000 in batches of 200
+    inputs = [torch.rand(b, 3, 90, 160, generator=torch.Generator().manual_seed(b)) for b in batches]
+
+    @torch.inference_mode()
+    def model_alone():
+        for x in inputs:
+            model(x).argmax(1)
+
+    def certify():
+        smoothed = MotionSmoothedClassifier(model, sample, dist, 20, batch_size=200)
+        start = time.perf_counter()
+        smoothed.certify(100, 1000, 0.01, image_generator(0, 0))
+        total = time.perf_counter() - start
+        return total, smoothed.timings["render"], smoothed.timings["model"]
+
+    model_alone()
+    certify()  # warm-up: numba compilation, allocator
+    ref = statistics.median(_timed(model_alone) for _ in range(args.repeats))
+    runs = [certify() for _ in range(args.repeats)]
+    total, render, model_t = (statistics.median(r[i] for r in runs) for i in range(3))
+    overhead = total - render - model_t
+    print(
+        f"{args.arch}, {args.axis} (sigma {dist.sigmas[0]}), {args.profile} MetaRoom sample: "
+        f"{len(sample.points):,} points, {len(sample.crop_points):,} after the crop; "
+        f"n0 + n = 1100, batch 200, {args.threads} threads, median of {args.repeats}"
+    )
+    print(f"{'':<34}{'seconds':>10}{'vs model alone':>16}")
+    for name, value in (
+        ("1100 forward passes alone", ref),
+        ("certify: total", total),
+        ("certify: projection", render),
+        ("certify: model", model_t),
+        ("certify: overhead (sampling, stats)", overhead),
+    ):
+        print(f"{name:<34}{value:>10.3f}{value / ref:>15.2f}x")
+    print(f"projection + overhead = {(render + overhead) / model_t:.1%} of the model's time in certify")
+
+
+def _timed(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,150 @@
+"""The certify log: Cohen et al.'s / the paper authors' TSV, plus our extra columns.
+
+Columns ``idx label predict radius correct time`` first (radius at full precision, predict
+-1 for abstain, time as ``H:MM:SS.ffffff``), then ``count_a n0 n p_a_lower sigma axis
+seconds``. Rows are appended and flushed one by one; a restarted run keeps every complete
+row and drops a torn last line. Metrics and the certified-accuracy curve are computed from
+the exact step function of the radii.
+"""
+
+from __future__ import annotations
+
+import datetime
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mrcert.errors import MrcertError
+
+COHEN_COLUMNS = ["idx", "label", "predict", "radius", "correct", "time"]
+EXTRA_COLUMNS = ["count_a", "n0", "n", "p_a_lower", "sigma", "axis", "seconds"]
+COLUMNS = COHEN_COLUMNS + EXTRA_COLUMNS
+
+
+def format_row(row: dict, columns: list[str]) -> str:
+    """One TSV line; floats in shortest round-trip form (full precision)."""
+    values = dict(row)
+    if "time" in columns:
+        values["time"] = str(datetime.timedelta(seconds=float(row["seconds"])))
+    return "\t".join(repr(v) if isinstance(v, float) else str(v) for v in (values[c] for c in columns))
+
+
+class ResultLog:
+    """An append-only per-image TSV (first column ``idx``) that a restarted run resumes."""
+
+    def __init__(self, path: Path, columns: list[str] = COLUMNS):
+        self.path, self.columns = Path(path), list(columns)
+
+    def done(self) -> set[int]:
+        """Indices already certified; truncates a torn last line left by a crash."""
+        if not self.path.exists():
+            return set()
+        text = self.path.read_text()
+        if text and not text.endswith("\n"):
+            text = text[: text.rfind("\n") + 1]
+            self.path.write_text(text)
+        lines = text.splitlines()
+        if not lines:
+            return set()
+        if lines[0].split("\t") != self.columns:
+            raise MrcertError(f"{self.path} has header {lines[0]!r}, expected {' '.join(self.columns)}")
+        return {int(line.split("\t", 1)[0]) for line in lines[1:]}
+
+    def append(self, row: dict) -> None:
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        with open(self.path, "a") as f:
+            if new:
+                f.write("\t".join(self.columns) + "\n")
+            f.write(format_row(row, self.columns) + "\n")
+            f.flush()
+
+
+def read_log(path: Path, required: list[str] = COHEN_COLUMNS[:5]) -> pd.DataFrame:
+    """A per-image log sorted by idx; by default a certify log in Cohen's format, with or
+    without the extra columns."""
+    path = Path(path)
+    if not path.is_file():
+        raise MrcertError(f"log {str(path)!r} does not exist")
+    try:
+        df = pd.read_csv(path, sep="\t", dtype={"time": str})
+    except Exception as exc:
+        raise MrcertError(f"cannot parse log {str(path)!r}: {exc}") from None
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise MrcertError(f"log {str(path)!r} lacks the columns {missing} (expected: {' '.join(required)} ...)")
+    return df.sort_values("idx").reset_index(drop=True)
+
+
+def merge_logs(paths: Iterable[Path]) -> pd.DataFrame:
+    """Shards (or pieces) of one certification merged into one table; an index twice is an error."""
+    df = pd.concat([read_log(p) for p in paths], ignore_index=True)
+    dup = df["idx"][df["idx"].duplicated()]
+    if len(dup):
+        raise MrcertError(f"test images {sorted(set(dup.tolist()))[:10]} appear in more than one log")
+    return df.sort_values("idx").reset_index(drop=True)
+
+
+def certified_accuracy(df: pd.DataFrame, radius: float) -> float:
+    """Fraction of images with a correct prediction and radius >= ``radius`` (abstain = wrong)."""
+    if len(df) == 0:
+        return float("nan")
+    return float(((df["correct"] == 1) & (df["radius"] >= radius) & (df["predict"] >= 0)).mean())
+
+
+def radius_grid(step: float, max_radius: float) -> np.ndarray:
+    """``k * step`` for k = 0..K (multiplied, never accumulated)."""
+    k = np.arange(int(np.floor(max_radius / step + 1e-9)) + 1)
+    return k * step
+
+
+def curve(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The exact step function: certified accuracy is ``acc[i]`` on ``(r[i-1], r[i]]``.
+
+    Returns the distinct radii of correct predictions (with 0 first) and the accuracy at each.
+    """
+    ok = df[(df["correct"] == 1) & (df["predict"] >= 0)]["radius"].to_numpy(float)
+    radii = np.unique(np.concatenate([[0.0], ok]))
+    acc = np.array([(ok >= r).sum() for r in radii]) / max(len(df), 1)
+    return radii, acc
+
+
+def metrics(df: pd.DataFrame, radius: float, step: float, max_radius: float) -> tuple[dict[str, float], pd.DataFrame]:
+    """Headline metrics and the certified accuracy over the radius grid."""
+    abstain = df["predict"] < 0
+    correct = (df["correct"] == 1) & ~abstain
+    grid = radius_grid(step, max_radius)
+    table = pd.DataFrame({"radius": grid, "certified_accuracy": [certified_accuracy(df, r) for r in grid]})
+    out = {
+        "num_images": float(len(df)),
+        "clean_accuracy": float(correct.mean()) if len(df) else float("nan"),
+        "certified_accuracy": certified_accuracy(df, radius),
+        "abstain_rate": float(abstain.mean()) if len(df) else float("nan"),
+        "mean_radius": float(df.loc[~abstain, "radius"].mean()) if (~abstain).any() else 0.0,
+        "average_certified_radius": float((df["radius"] * correct).mean()) if len(df) else float("nan"),
+    }
+    if "seconds" in df.columns:
+        out["seconds_per_image"] = float(df["seconds"].mean())
+    return out, table
+
+
+def plot_curve(df: pd.DataFrame, path: Path, title: str, radius: float | None = None) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    radii, acc = curve(df)
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    # accuracy(r) = acc[i] for r in (radii[i-1], radii[i]], then 0 beyond the largest radius.
+    end = radii[-1] * 1.05 + 1e-12
+    ax.step(np.append(radii, end), np.append(acc, 0.0), where="pre", lw=1.8)
+    if radius is not None:
+        ax.axvline(radius, color="grey", ls="--", lw=1)
+    ax.set(xlabel="radius", ylabel="certified accuracy", ylim=(0, 1.02), title=title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

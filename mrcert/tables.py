@@ -1,0 +1,373 @@
+"""The paper's tables and figure, built from finished MLflow runs.
+
+Runs are gathered with ``mlflow.search_runs`` into pandas and looked up by their tags (task,
+dataset, profile, architecture, variant, axis; attack K). A cell with no run is empty (NaN,
+written as an empty string), never zero. With ``show_paper`` a cell reads ``ours (paper)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mrcert import certify_log, paper_results
+from mrcert.paper_results import ARCHS, AXES_ORDER, VARIANTS
+
+ARCH_NAMES = {"resnet18": "ResNet-18", "resnet50": "ResNet-50", "small_cnn": "SmallCNN"}
+AXIS_NAMES = {"tz": "Tz", "tx": "Tx", "ty": "Ty", "rz": "Rz", "rx": "Rx", "ry": "Ry"}
+
+
+@dataclass
+class Runs:
+    """Finished runs of one experiment, filtered by dataset and profile."""
+
+    df: pd.DataFrame
+
+    @classmethod
+    def gather(cls, experiment: str, dataset: str | None = None, profile: str | None = None) -> Runs:
+        import mlflow
+
+        exp = mlflow.MlflowClient().get_experiment_by_name(experiment)
+        if exp is None:
+            return cls(pd.DataFrame())
+        df = mlflow.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'")
+        if len(df) and dataset:
+            df = df[df.get("tags.mrcert.dataset") == dataset]
+        if len(df) and profile and "tags.mrcert.profile" in df:
+            # Imported logs carry the profile their metadata names.
+            df = df[df["tags.mrcert.profile"].fillna(profile) == profile]
+        return cls(df.sort_values("start_time", ascending=False) if len(df) else df)
+
+    def find(
+        self,
+        tasks: tuple[str, ...],
+        arch: str | None = None,
+        variant: str | None = None,
+        axis: str | None = None,
+        k: int | None = None,
+        sigma: float | None = None,
+    ) -> pd.Series | None:
+        """The latest finished run matching every given key."""
+        df = self.df
+        if not len(df):
+            return None
+        mask = df["tags.mrcert.task"].isin(tasks)
+        for col, value in (("tags.mrcert.model", arch), ("tags.mrcert.variant", variant), ("tags.mrcert.axis", axis)):
+            if value is not None:
+                mask &= df.get(col) == value
+        if k is not None:
+            mask &= pd.to_numeric(df.get("metrics.k"), errors="coerce") == k
+        if sigma is not None:
+            mask &= np.isclose(pd.to_numeric(df.get("params.motion.sigma"), errors="coerce"), sigma)
+        hits = df[mask]
+        return None if hits.empty else hits.iloc[0]
+
+    def metric(self, name: str, tasks: tuple[str, ...], **keys) -> float:
+        run = self.find(tasks, **keys)
+        if run is None:
+            return float("nan")
+        value = run.get(f"metrics.{name}")
+        return float(value) if value is not None and not pd.isna(value) else float("nan")
+
+
+CERTIFY_TASKS = ("certify", "import")
+
+
+def model_label(arch: str, variant: str, smoothed: bool = True) -> str:
+    return f"{'Smoothed ' if smoothed else ''}{variant.capitalize()} {ARCH_NAMES.get(arch, arch)}"
+
+
+Cell = Callable[[Runs, str, str, str], float]
+PaperCell = Callable[[str, str, str], float | None]
+
+
+def _paper(table: dict, axis: str, arch: str, variant: str) -> float | None:
+    return table.get((axis, arch, variant))
+
+
+def certified_table(runs: Runs, archs=ARCHS, axes=AXES_ORDER, show_paper: bool = False) -> pd.DataFrame:
+    """Table 3: benign, 5-perturbed and certified accuracy of the four smoothed models."""
+    columns: dict[str, tuple[Cell, PaperCell]] = {
+        "Benign Acc": (
+            lambda r, ax, a, v: r.metric("smoothed_benign_accuracy", ("smooth",), arch=a, variant=v, axis=ax),
+            lambda ax, a, v: _paper(paper_results.SMOOTHED_BENIGN, ax, a, v),
+        ),
+        "5-pert Emp. Acc": (
+            lambda r, ax, a, v: r.metric("smoothed_robust_accuracy", ("attack",), arch=a, variant=v, axis=ax, k=5),
+            lambda ax, a, v: _paper(paper_results.SMOOTHED_PERTURBED_5, ax, a, v),
+        ),
+        "Certified Acc": (
+            lambda r, ax, a, v: r.metric("certified_accuracy", CERTIFY_TASKS, arch=a, variant=v, axis=ax),
+            lambda ax, a, v: _paper(paper_results.CERTIFIED, ax, a, v),
+        ),
+    }
+    rows = [(AXIS_NAMES[ax], model_label(a, v), ax, a, v) for ax in axes for a in archs for v in VARIANTS]
+    return _build(runs, rows, columns, show_paper, ["Axis", "Model"])
+
+
+def base_vs_smoothed_table(
+    runs: Runs, variant: str, archs=ARCHS, axes=AXES_ORDER, k: int = 100, show_paper: bool = False
+) -> pd.DataFrame:
+    """Table 1 (augmented) / its appendix twin (vanilla): benign and K-perturbed, base vs smoothed."""
+    out = []
+    for metric, base_name, smooth_name, base_paper, smooth_paper, kk in (
+        ("Benign Accuracy", "base_benign_accuracy", "smoothed_benign_accuracy", paper_results.BASE_BENIGN, None, None),
+        (
+            f"{k}-perturbed Emp. Robust Acc.",
+            "base_robust_accuracy",
+            "smoothed_robust_accuracy",
+            paper_results.BASE_PERTURBED_100 if k == 100 else {},
+            paper_results.SMOOTHED_PERTURBED_100 if k == 100 else {},
+            k,
+        ),
+    ):
+        columns = {}
+        for a in archs:
+            columns[f"{ARCH_NAMES.get(a, a)} Base"] = (
+                lambda r, ax, a_, v, a=a, n=base_name, kk=kk: r.metric(
+                    n, ("attack",), arch=a, variant=v, axis=ax, k=kk
+                ),
+                lambda ax, a_, v, a=a, t=base_paper: _paper(t, ax, a, v),
+            )
+            smooth_tasks = ("smooth",) if smooth_name == "smoothed_benign_accuracy" else ("attack",)
+            smooth_table = paper_results.SMOOTHED_BENIGN if smooth_paper is None else smooth_paper
+            columns[f"{ARCH_NAMES.get(a, a)} Smoothed"] = (
+                lambda r, ax, a_, v, a=a, n=smooth_name, t=smooth_tasks, kk=kk: r.metric(
+                    n, t, arch=a, variant=v, axis=ax, k=kk if t == ("attack",) else None
+                ),
+                lambda ax, a_, v, a=a, t=smooth_table: _paper(t, ax, a, v),
+            )
+        rows = [(AXIS_NAMES[ax], metric, ax, None, variant) for ax in axes]
+        out.append(_build(runs, rows, columns, show_paper, ["Axis", "Metric"]))
+    order = [(AXIS_NAMES[ax], name) for ax in axes for name in ("Benign Accuracy", f"{k}-perturbed Emp. Robust Acc.")]
+    return pd.concat(out).reindex(pd.MultiIndex.from_tuples(order, names=["Axis", "Metric"]))
+
+
+def perturbed_5_vs_100_table(runs: Runs, archs=ARCHS, axes=AXES_ORDER, show_paper: bool = False) -> pd.DataFrame:
+    """Appendix: smoothed 5- vs 100-perturbed empirical robust accuracy."""
+    columns = {}
+    for a in archs:
+        for v in VARIANTS:
+            columns[f"{ARCH_NAMES.get(a, a)} {v.capitalize()}"] = (
+                lambda r, ax, k_, v_, a=a, v=v: r.metric(
+                    "smoothed_robust_accuracy", ("attack",), arch=a, variant=v, axis=ax, k=int(k_)
+                ),
+                lambda ax, k_, v_, a=a, v=v: _paper(
+                    paper_results.SMOOTHED_PERTURBED_5 if k_ == "5" else paper_results.SMOOTHED_PERTURBED_100, ax, a, v
+                ),
+            )
+    rows = [(AXIS_NAMES[ax], f"{k}-perturbed", ax, str(k), None) for ax in axes for k in (5, 100)]
+    return _build(runs, rows, columns, show_paper, ["Axis", "Metric"])
+
+
+def tabletop_table(
+    runs: Runs, arch: str = "resnet18", variant: str = "vanilla", k: int = 10, show_paper: bool = False
+) -> pd.DataFrame:
+    """The real-robot table: benign and 10-perturbed accuracy, base vs smoothed, six axes."""
+    axes = ("tx", "ty", "tz", "rx", "ry", "rz")
+    data = {}
+    for who, benign_task, benign_metric, robust_metric, idx in (
+        ("Base", "attack", "base_benign_accuracy", "base_robust_accuracy", 0),
+        ("Smoothed", "smooth", "smoothed_benign_accuracy", "smoothed_robust_accuracy", 1),
+    ):
+        benign = [
+            runs.metric(
+                benign_metric,
+                (benign_task,),
+                arch=arch,
+                variant=variant,
+                axis=ax,
+                k=k if benign_task == "attack" else None,
+            )
+            for ax in axes
+        ]
+        ok = [b for b in benign if not np.isnan(b)]
+        row = {"Benign Accuracy": (float(np.mean(ok)) if ok else float("nan"), paper_results.TABLETOP_BENIGN)}
+        for ax in axes:
+            row[AXIS_NAMES[ax]] = (
+                runs.metric(robust_metric, ("attack",), arch=arch, variant=variant, axis=ax, k=k),
+                paper_results.TABLETOP_PERTURBED_10[ax][idx],
+            )
+        data[who] = {c: _cell(v, p, show_paper) for c, (v, p) in row.items()}
+    df = pd.DataFrame.from_dict(data, orient="index")
+    df.index.name = "Model"
+    return df
+
+
+def sweep_table(runs: Runs, parent: str | None = None) -> pd.DataFrame:
+    """Certified accuracy against sigma (rows) and radius (columns) for each axis.
+
+    From the children of ``parent`` (a sweep's parent run id) when given, else from every
+    finished certify run. Radii are each axis's grid ``k * radius_step``.
+    """
+    df = runs.df
+    if not len(df):
+        return pd.DataFrame()
+    df = df[df["tags.mrcert.task"].isin(CERTIFY_TASKS)]
+    if parent:
+        df = df[df.get("tags.mlflow.parentRunId") == parent]
+    rows = []
+    for _, run in df.iterrows():
+        log = _certify_log(run)
+        if log is None:
+            continue
+        step = float(run.get("params.motion.radius_step", run.get("params.task.radius_step", "nan")))
+        sigma = float(run.get("params.motion.sigma", run.get("params.task.sigma", "nan")))
+        grid = certify_log.radius_grid(step, 4 * sigma)
+        for r in grid[:: max(1, len(grid) // 8)]:
+            rows.append(
+                {
+                    "Axis": run["tags.mrcert.axis"],
+                    "sigma": sigma,
+                    "radius": float(r),
+                    "Certified Acc": certify_log.certified_accuracy(log, float(r)),
+                    "start": run["start_time"],
+                }
+            )
+    if not rows:
+        return pd.DataFrame()
+    long = pd.DataFrame(rows).sort_values("start", ascending=False).drop_duplicates(["Axis", "sigma", "radius"])
+    wide = long.pivot_table(index=["Axis", "sigma"], columns="radius", values="Certified Acc")
+    wide.columns = [f"r={c:.4g}" for c in wide.columns]
+    return wide
+
+
+def curves(runs: Runs, archs=ARCHS, axes=AXES_ORDER) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Per axis, per model: the exact step function (radii, certified accuracy) of its certify log."""
+    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for ax in axes:
+        for a in archs:
+            for v in VARIANTS:
+                run = runs.find(CERTIFY_TASKS, arch=a, variant=v, axis=ax)
+                log = None if run is None else _certify_log(run)
+                if log is not None:
+                    out.setdefault(ax, {})[model_label(a, v)] = certify_log.curve(log)
+    return out
+
+
+def plot_curves(data: dict, path_stem: Path) -> list[Path]:
+    """One panel per axis, one step curve per model; PNG and PDF."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes = [a for a in AXES_ORDER if a in data] or list(data)
+    fig, panels = plt.subplots(2, 3, figsize=(12, 6.5), squeeze=False)
+    for i, ax_name in enumerate(AXES_ORDER):
+        panel = panels[i // 3][i % 3]
+        panel.set(
+            title=AXIS_NAMES[ax_name],
+            xlabel="radius (m)" if ax_name.startswith("t") else "radius (rad)",
+            ylabel="certified accuracy",
+            ylim=(0, 1.02),
+        )
+        panel.grid(alpha=0.3)
+        for label, (radii, acc) in data.get(ax_name, {}).items():
+            end = radii[-1] * 1.05 + 1e-12
+            panel.step(np.append(radii, end), np.append(acc, 0.0), where="pre", label=label, lw=1.6)
+        if ax_name in data:
+            panel.legend(fontsize=7)
+    fig.suptitle("Certified accuracy against radius" + ("" if axes else " (no certify runs)"))
+    fig.tight_layout()
+    paths = [path_stem.with_suffix(".png"), path_stem.with_suffix(".pdf")]
+    for p in paths:
+        fig.savefig(p, dpi=130)
+    plt.close(fig)
+    return paths
+
+
+def write(df: pd.DataFrame, stem: Path, caption: str) -> list[Path]:
+    """Markdown, LaTeX and CSV of a table; empty cells stay empty."""
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    flat = df.reset_index()
+    text = flat.map(_fmt) if hasattr(flat, "map") else flat.applymap(_fmt)
+    md = stem.with_suffix(".md")
+    md.write_text(f"**{caption}**\n\n" + _markdown(text) + "\n")
+    tex = stem.with_suffix(".tex")
+    tex.write_text(_latex(text, caption))
+    csv = stem.with_suffix(".csv")
+    flat.to_csv(csv, index=False, na_rep="")
+    return [md, tex, csv]
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "" if np.isnan(v) else f"{v:.3f}"
+    return "" if v is None else str(v)
+
+
+def _markdown(text: pd.DataFrame) -> str:
+    header = "| " + " | ".join(map(str, text.columns)) + " |"
+    rule = "|" + "|".join("---" for _ in text.columns) + "|"
+    body = ["| " + " | ".join(row) + " |" for row in text.astype(str).itertuples(index=False, name=None)]
+    return "\n".join([header, rule, *body])
+
+
+def _latex_escape(s: str) -> str:
+    return (
+        s.replace("\\", r"\textbackslash{}")
+        .replace("&", r"\&")
+        .replace("%", r"\%")
+        .replace("_", r"\_")
+        .replace("#", r"\#")
+    )
+
+
+def _latex(text: pd.DataFrame, caption: str) -> str:
+    cols = "l" * len(text.columns)
+    lines = [
+        r"\begin{table}[ht]",
+        r"\centering",
+        rf"\begin{{tabular}}{{{cols}}}",
+        r"\hline",
+        " & ".join(_latex_escape(str(c)) for c in text.columns) + r" \\",
+        r"\hline",
+    ]
+    lines += [
+        " & ".join(_latex_escape(c) for c in row) + r" \\"
+        for row in text.astype(str).itertuples(index=False, name=None)
+    ]
+    lines += [r"\hline", r"\end{tabular}", rf"\caption{{{_latex_escape(caption)}}}", r"\end{table}", ""]
+    return "\n".join(lines)
+
+
+def _cell(value: float, paper: float | None, show_paper: bool):
+    if not show_paper:
+        return value
+    ours = "" if np.isnan(value) else f"{value:.3f}"
+    return ours if paper is None else f"{ours} ({paper:.3f})"
+
+
+def _build(
+    runs: Runs, rows, columns: dict[str, tuple[Cell, PaperCell]], show_paper: bool, index_names: list[str]
+) -> pd.DataFrame:
+    data = {}
+    for r0, r1, ax, a, v in rows:
+        data[(r0, r1)] = {
+            name: _cell(get(runs, ax, a, v), paper(ax, a, v), show_paper) for name, (get, paper) in columns.items()
+        }
+    df = pd.DataFrame.from_dict(data, orient="index")
+    df.index = pd.MultiIndex.from_tuples(df.index, names=index_names)
+    return df
+
+
+def _certify_log(run: pd.Series) -> pd.DataFrame | None:
+    """The certify log of a run: from its output folder, else downloaded from its artifacts."""
+    local = Path(str(run.get("tags.mrcert.output_dir", ""))) / "certify.tsv"
+    if local.is_file():
+        return certify_log.read_log(local)
+    import mlflow
+
+    for name in ("certify.tsv", Path(str(run.get("params.task.path", "x"))).name):
+        try:
+            return certify_log.read_log(
+                Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"], artifact_path=name))
+            )
+        except Exception:  # noqa: BLE001 - a run without that artifact: try the next name
+            continue
+    return None

@@ -1,0 +1,59 @@
+"""``task=certify``: CERTIFY every test image of this job; one row of ``certify.tsv`` each.
+
+Resumes from its TSV when restarted with the same config (``task.resume``, on by default),
+and splits the test set across jobs with ``task.shard`` / ``task.num_shards``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from omegaconf import DictConfig
+
+from mrcert import certify_log
+from mrcert.smoothing import image_generator
+from mrcert.tasks import RunContext
+from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
+
+
+def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, region: str) -> dict[str, float]:
+    """Metrics, the radius-grid table and the curve of a certify log, logged to the run."""
+    max_radius = max(float(df["radius"].max()) if len(df) else 0.0, cfg_radius)
+    metrics, grid = certify_log.metrics(df, cfg_radius, step, max_radius)
+    grid_path = ctx.output_dir / "certified_accuracy.csv"
+    grid.to_csv(grid_path, index=False)
+    for k, acc in enumerate(grid["certified_accuracy"]):
+        ctx.tracker.log_metrics({"certified_accuracy_at_step": acc}, step=k)
+    curve = certify_log.plot_curve(df, ctx.output_dir / "certified_accuracy.png", f"{title}\n{region}", cfg_radius)
+    (ctx.output_dir / "region.txt").write_text(region + "\n")
+    log_outputs(ctx, metrics, grid_path, curve, ctx.output_dir / "region.txt")
+    return metrics
+
+
+def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+    t = cfg.task
+    ev = prepare(cfg)
+    dist = ev.distribution
+    log = certify_log.ResultLog(ctx.output_dir / "certify.tsv")
+
+    def certify_one(i: int) -> dict[str, Any]:
+        sample = ev.samples[i]
+        cert = ev.smoothed(sample, cfg).certify(int(t.n0), int(t.n), float(t.alpha), image_generator(cfg.seed, i))
+        return {
+            "label": sample.label,
+            "predict": cert.prediction,
+            "radius": float(cert.radius),
+            "correct": int(cert.prediction == sample.label),
+            "count_a": cert.count_a,
+            "n0": int(t.n0),
+            "n": int(t.n),
+            "p_a_lower": float(cert.p_a_lower),
+            "sigma": "+".join(map(repr, dist.sigmas)),
+            "axis": dist.name,
+        }
+
+    run_per_image(log, ev.indices, certify_one, f"certify {dist.name}")
+    ctx.tracker.log_artifact(log.path)
+    df = certify_log.read_log(log.path)
+    title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, smoothing {dist.name}"
+    return report(df, float(cfg.motion.radius), float(cfg.motion.radius_step), ctx, title, dist.region())

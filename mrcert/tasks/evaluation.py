@@ -1,0 +1,84 @@
+"""What ``certify``, ``smooth`` and ``attack`` share: the test images a job handles, the
+trained classifier, the smoothing distribution, and a resumable per-image loop."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+
+from mrcert.certify_log import ResultLog
+from mrcert.checkpoints import load_classifier
+from mrcert.data.datasets import DataBundle, SampleSet, load
+from mrcert.data.samples import TestSample
+from mrcert.errors import MrcertError
+from mrcert.runtime import resolve_device
+from mrcert.smoothing import MotionSmoothedClassifier, SmoothingDistribution
+from mrcert.tasks import RunContext
+
+
+def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards: int) -> list[int]:
+    """Every ``skip``-th test image, at most ``limit`` of them, then this shard's share."""
+    if not 0 <= shard < num_shards:
+        raise MrcertError(f"task.shard={shard} is not allowed: an integer in [0, task.num_shards={num_shards})")
+    chosen = list(range(0, total, skip))[: limit if limit is not None else None]
+    return chosen[shard::num_shards]
+
+
+@dataclass
+class Evaluation:
+    bundle: DataBundle
+    samples: SampleSet
+    model: torch.nn.Module
+    distribution: SmoothingDistribution
+    indices: list[int]
+    device: torch.device
+
+    def smoothed(self, sample: TestSample, cfg: DictConfig) -> MotionSmoothedClassifier:
+        return MotionSmoothedClassifier(
+            self.model,
+            sample,
+            self.distribution,
+            len(self.bundle.classes),
+            int(cfg.task.batch_size),
+            self.device,
+            cfg.task.get("backend", "auto"),
+        )
+
+
+def prepare(cfg: DictConfig) -> Evaluation:
+    t = cfg.task
+    device = resolve_device(cfg.device)
+    distribution = SmoothingDistribution.from_config(cfg.motion)
+    bundle = load(cfg.data)
+    downsampling = None
+    if cfg.data.get("downsample"):
+        downsampling = (int(cfg.motion.downsample.every_k), float(cfg.motion.downsample.voxel))
+    samples = bundle.samples(downsampling=downsampling, crop=distribution.crop_bound(float(t.crop_sigmas)))
+    model = load_classifier(cfg, len(bundle.classes), device)
+    indices = job_indices(len(samples), int(t.skip), t.get("max"), int(t.shard), int(t.num_shards))
+    return Evaluation(bundle, samples, model, distribution, indices, device)
+
+
+def run_per_image(log: ResultLog, indices: list[int], work: Callable[[int], dict[str, Any]], desc: str) -> int:
+    """Run ``work(i)`` for every index not yet in ``log``, appending each row as it is done."""
+    from tqdm import tqdm
+
+    done = log.done()
+    todo = [i for i in indices if i not in done]
+    for i in tqdm(todo, desc=desc):
+        start = time.perf_counter()
+        row = work(i)
+        row["seconds"] = time.perf_counter() - start
+        log.append({"idx": i} | row)
+    return len(todo)
+
+
+def log_outputs(ctx: RunContext, metrics: dict[str, float], *paths) -> None:
+    ctx.tracker.log_metrics(metrics)
+    for p in paths:
+        ctx.tracker.log_artifact(p)

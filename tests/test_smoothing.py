@@ -1,0 +1,282 @@
+"""Motion smoothing: exact statistics, PREDICT, determinism across batches and shards, resume, import."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from scipy.stats import beta, norm
+from statsmodels.stats.proportion import proportion_confint
+from torch import nn
+
+from mrcert.__main__ import run_task
+from mrcert.certify_log import ResultLog, merge_logs, read_log
+from mrcert.config import CONF_DIR
+from mrcert.data.samples import TestSample
+from mrcert.errors import MrcertError
+from mrcert.smoothing import (
+    ABSTAIN,
+    MotionSmoothedClassifier,
+    SmoothingDistribution,
+    image_generator,
+    lower_confidence_bound,
+)
+from tests.conftest import PAPER_K
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = [
+    "data=metaroom_synth",
+    "model=small_cnn",
+    "model.net.width=8",
+    "data.classes=[can,mug,apple]",
+    "data.room_density=0.03",
+    "data.density=0.01",
+    "data.protocol.train.per_class=16",
+]
+FAST_CERTIFY = ["task=certify", "task.n0=8", "task.n=40", "task.max=6", "task.batch_size=8"]
+TIMING = ["time", "seconds"]
+
+
+def compose_cfg(overrides, outputs):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=[*TINY, *overrides, f"paths.outputs={outputs}"])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A store with one finished tiny train run (the classifier the tasks look up)."""
+    outputs = tmp_path_factory.mktemp("store")
+    run_task(
+        compose_cfg(["task=train", "task.epochs=2", "task.lr=0.05", "task.batch_size=8"], outputs),
+        outputs / "runs" / "train",
+    )
+    return outputs
+
+
+class Constant(nn.Module):
+    def __init__(self, cls: int, num_classes: int = 4):
+        super().__init__()
+        self.cls, self.num_classes = cls, num_classes
+
+    def forward(self, x):
+        out = torch.zeros(len(x), self.num_classes)
+        out[:, self.cls] = 1.0
+        return out
+
+
+def tiny_sample() -> TestSample:
+    pts = np.random.default_rng(0).uniform([-1, -1, 2], [1, 1, 3], (500, 3))
+    return TestSample.build(pts, np.ones((500, 3), np.float32), PAPER_K, 90, 160, label=2)
+
+
+def test_clopper_pearson_oracles():
+    assert lower_confidence_bound(990, 1000, 0.001) == pytest.approx(0.9760361871553114, abs=1e-15)
+    for count, n in ((990, 1000), (1, 100), (57, 100), (1000, 1000), (500, 1000)):
+        expected = proportion_confint(count, n, alpha=0.02, method="beta")[0]
+        assert lower_confidence_bound(count, n, 0.01) == pytest.approx(expected, abs=1e-12)
+    assert lower_confidence_bound(0, 1000, 0.01) == 0.0  # no NaN for nA = 0
+    assert lower_confidence_bound(1000, 1000, 0.01) == pytest.approx(0.01 ** (1 / 1000))  # < 1: finite radius
+
+
+def test_constant_classifier_certifies_2_605_sigma():
+    dist = SmoothingDistribution(("tz",), (0.1,))
+    cert = MotionSmoothedClassifier(Constant(2), tiny_sample(), dist, 4).certify(100, 1000, 0.01, image_generator(0, 0))
+    assert (cert.prediction, cert.count_a) == (2, 1000)
+    assert cert.radius == pytest.approx(0.1 * norm.ppf(0.01 ** (1 / 1000)), abs=1e-15)
+    assert cert.radius / 0.1 == pytest.approx(2.605, abs=5e-4)
+
+
+def test_predict_abstains_on_ties_and_close_counts():
+    decide = MotionSmoothedClassifier.decide
+    assert decide(np.array([50, 50, 0]), 0.01) == ABSTAIN
+    assert decide(np.array([45, 55, 0]), 0.01) == ABSTAIN
+    assert decide(np.array([0, 0, 0]), 0.01) == ABSTAIN
+    assert decide(np.array([10, 0, 90]), 0.01) == 2
+    smoothed = MotionSmoothedClassifier(Constant(1), tiny_sample(), SmoothingDistribution(("rz",), (0.12,)), 4)
+    assert smoothed.predict(100, 0.01, image_generator(0, 3)) == 1
+
+
+def test_theorem_1_distribution():
+    dist = SmoothingDistribution(("tx", "ty", "tz", "rz"), (0.05, 0.05, 0.1, 0.122173))
+    assert "ellipsoid" in dist.region() and dist.radius(0.99) == pytest.approx(norm.ppf(0.99))
+    m = dist.sample(20000, image_generator(0, 0))
+    assert (m[:, [3, 4]] == 0).all()
+    np.testing.assert_allclose(m[:, [0, 1, 2, 5]].std(0).numpy(), [0.05, 0.05, 0.1, 0.122173], rtol=0.03)
+    with pytest.raises(MrcertError, match="Theorem 1"):
+        SmoothingDistribution(("rx", "rz"), (0.1, 0.1))
+
+
+def certify_rows(outputs: Path) -> pd.DataFrame:
+    return merge_logs(sorted(outputs.glob("runs/**/certify.tsv"))).drop(columns=TIMING)
+
+
+def test_rows_follow_the_formula_and_batch_size_and_shards_do_not_matter(trained, tmp_path):
+    base = tmp_path / "base"
+    run_task(
+        compose_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", "task.batch_size=200"], base),
+        base / "runs" / "one",
+    )
+    reference = certify_rows(base)
+    assert len(reference) == 6
+    for _, row in reference.iterrows():
+        p = beta.ppf(0.01, row.count_a, row.n - row.count_a + 1) if row.count_a > 0 else 0.0
+        if row.predict == ABSTAIN:
+            assert p < 0.5 and row.radius == 0.0
+        else:
+            assert p >= 0.5 and row.radius == 0.1 * norm.ppf(p)
+        assert row.p_a_lower == p
+    small = tmp_path / "small"
+    run_task(
+        compose_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", "task.batch_size=7"], small),
+        small / "runs" / "one",
+    )
+    pd.testing.assert_frame_equal(certify_rows(small), reference)
+    sharded = tmp_path / "sharded"
+    for shard in range(3):
+        run_task(
+            compose_cfg(
+                [*FAST_CERTIFY, f"model.checkpoint={best(trained)}", f"task.shard={shard}", "task.num_shards=3"],
+                sharded,
+            ),
+            sharded / "runs" / f"s{shard}",
+        )
+    pd.testing.assert_frame_equal(certify_rows(sharded), reference)
+
+
+def best(outputs: Path) -> Path:
+    (path,) = outputs.glob("runs/train/best.pt")
+    return path
+
+
+def test_certify_killed_and_restarted_resumes_to_the_identical_tsv(trained, tmp_path):
+    args = [*TINY, *FAST_CERTIFY, "task.max=8", f"model.checkpoint={best(trained)}"]
+    full = tmp_path / "full"
+    run_task(compose_cfg(args[len(TINY) :], full), full / "runs" / "one")
+    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path / "killed")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None:
+        logs = list((tmp_path / "killed").glob("runs/certify/*/certify.tsv"))
+        if logs and len(logs[0].read_text().splitlines()) >= 3:  # header + 2 rows
+            break
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    (log,) = (tmp_path / "killed").glob("runs/certify/*/certify.tsv")
+    assert len(log.read_text().splitlines()) < 9, "the run finished before it could be killed"
+    with open(log, "a") as f:
+        f.write("7\t1\t0\t0.0")  # a torn last line, as a crash mid-write leaves it
+    done = subprocess.run(
+        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert list((tmp_path / "killed").glob("runs/certify/*/certify.tsv")) == [log]  # continued in place
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), certify_rows(full))
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'killed' / 'mlflow.db'}")
+    (run,) = mlflow.search_runs(search_all_experiments=True, output_format="list")
+    assert run.info.status == "FINISHED" and run.data.metrics["num_images"] == 8
+
+
+def test_import_of_a_hand_written_cohen_log(tmp_path):
+    log = tmp_path / "cohen.tsv"
+    log.write_text(
+        "idx\tlabel\tpredict\tradius\tcorrect\ttime\n"
+        "0\t0\t0\t0.5\t1\t0:00:01.0\n"
+        "6\t0\t0\t0.05\t1\t0:00:01.0\n"
+        "12\t1\t-1\t0.0\t0\t0:00:01.0\n"
+        "18\t1\t1\t0.2\t1\t0:00:01.0\n"
+        "24\t2\t0\t0.3\t0\t0:00:01.0\n"
+    )
+    outputs = tmp_path / "out"
+    result = run_task(
+        compose_cfg(
+            [
+                "task=import",
+                f"task.path={log}",
+                "task.dataset=metaroom",
+                "task.arch=resnet50",
+                "task.variant=augmented",
+                "motion=tz",
+            ],
+            outputs,
+        ),
+        outputs / "runs" / "imp",
+    )
+    assert result["certified_accuracy"] == pytest.approx(2 / 5)  # idx 0 and 18: correct with radius >= 0.1
+    assert result["clean_accuracy"] == pytest.approx(3 / 5) and result["abstain_rate"] == pytest.approx(1 / 5)
+    mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+    (run,) = mlflow.search_runs(search_all_experiments=True, output_format="list")
+    assert run.data.tags["mrcert.dataset"] == "metaroom" and run.data.tags["mrcert.model"] == "resnet50"
+    assert run.data.tags["mrcert.variant"] == "augmented" and run.data.tags["mrcert.axis"] == "tz"
+    assert run.data.metrics["certified_accuracy"] == pytest.approx(0.4)
+    grid = pd.read_csv(Path(run.data.tags["mrcert.output_dir"]) / "certified_accuracy.csv")
+    expected = {0.0: 3 / 5, 0.1: 2 / 5, 0.2: 2 / 5, 0.3: 1 / 5, 0.5: 1 / 5}
+    for r, acc in expected.items():
+        row = grid[np.isclose(grid["radius"], r)]
+        assert row["certified_accuracy"].item() == pytest.approx(acc)
+
+
+def test_result_log_truncates_a_torn_line_and_checks_its_header(tmp_path):
+    log = ResultLog(tmp_path / "x.tsv", ["idx", "a", "seconds"])
+    log.append({"idx": 3, "a": 1.5, "seconds": 0.1})
+    with open(log.path, "a") as f:
+        f.write("4\t2.")
+    assert log.done() == {3} and log.path.read_text().endswith("\n")
+    with pytest.raises(MrcertError, match="expected idx b seconds"):
+        ResultLog(log.path, ["idx", "b", "seconds"]).done()
+
+
+def test_smooth_and_attack_tasks(trained, tmp_path):
+    ck = f"model.checkpoint={best(trained)}"
+    smooth = run_task(compose_cfg(["task=smooth", "task.n=30", "task.max=3", ck], tmp_path), tmp_path / "s")
+    assert 0 <= smooth["smoothed_benign_accuracy"] <= 1 and smooth["num_images"] == 3
+    for name in ("uniform", "grid"):
+        out = run_task(
+            compose_cfg(
+                ["task=attack", f"attack={name}", "attack.k=4", "task.n=20", "task.max=3", ck], tmp_path / name
+            ),
+            tmp_path / name / "a",
+        )
+        df = read_log(next((tmp_path / name / "a").glob("attack.tsv")), ["idx", "base_robust"])
+        assert out["base_robust_accuracy"] == df["base_robust"].mean() <= out["base_benign_accuracy"] + 1e-12
+        assert (df["base_worst"].abs() <= 0.1).all()
+    grid = read_log(tmp_path / "grid" / "a" / "attack.tsv", ["idx"])
+    assert set(np.round(grid["base_worst"], 9)) <= set(np.round(np.linspace(-0.1, 0.1, 4), 9))
+
+
+@pytest.mark.slow
+def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_prediction(trained, tmp_path):
+    """Certified images keep their PREDICT answer (n large) under motions inside the radius."""
+    from mrcert.checkpoints import load_classifier
+    from mrcert.data.datasets import load
+
+    cfg = compose_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}"], tmp_path)
+    bundle = load(cfg.data)
+    model = load_classifier(cfg, 3, torch.device("cpu"))
+    dist = SmoothingDistribution(("tz",), (0.1,))
+    samples = bundle.samples(crop=dist.crop_bound(6.0))
+    changed, trials = 0, 0
+    for i in range(0, len(samples), 2):
+        smoothed = MotionSmoothedClassifier(model, samples[i], dist, 3)
+        cert = smoothed.certify(100, 1000, 0.01, image_generator(0, i))
+        if cert.prediction == ABSTAIN or cert.radius <= 0:
+            continue
+        rng = np.random.default_rng(i)
+        for k, a in enumerate(rng.uniform(-cert.radius, cert.radius, 5)):
+            center = torch.tensor([0, 0, a, 0, 0, 0], dtype=torch.float64)
+            pred = smoothed.predict(2000, 0.001, image_generator(1, i, k), center)
+            trials += 1
+            changed += int(pred not in (cert.prediction, ABSTAIN))
+    assert trials > 0
+    # Each certificate fails with probability <= alpha = 0.01; allow a generous binomial margin.
+    assert changed <= max(1, int(0.05 * trials))
