@@ -27,15 +27,15 @@ $(STAMP): pyproject.toml
 install: $(STAMP) ## create .venv and install mrcert with its dependencies (idempotent)
 
 demo: $(STAMP) ## quick pipeline: data, two small models, certify + attack a subset, print the table
-	$(MRCERT) -m +experiment=demo task=train
-	$(MRCERT) -m +experiment=demo task=certify,smooth,attack
+	$(MRCERT) -m experiment=demo task=train
+	$(MRCERT) -m experiment=demo task=certify,smooth,attack
 	$(MRCERT) task=tables task.archs=[small_cnn] task.axes=[tz]
 
 reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished work is skipped
-	for e in table3 table1 tabletop; do $(MRCERT) -m +experiment=$$e profile=$(PROFILE) task=train || exit 1; done
-	$(MRCERT) -m +experiment=table3 profile=$(PROFILE) task=certify,smooth,attack
-	$(MRCERT) -m +experiment=table1 profile=$(PROFILE) task=smooth,attack
-	$(MRCERT) -m +experiment=tabletop profile=$(PROFILE) task=smooth,attack
+	for e in table3 table1 tabletop; do $(MRCERT) -m experiment=$$e profile=$(PROFILE) task=train || exit 1; done
+	$(MRCERT) -m experiment=table3 profile=$(PROFILE) task=certify,smooth,attack
+	$(MRCERT) -m experiment=table1 profile=$(PROFILE) task=smooth,attack
+	$(MRCERT) -m experiment=tabletop profile=$(PROFILE) task=smooth,attack
 	$(MRCERT) task=tables profile=$(PROFILE) task.show_paper=true
 
 test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)
@@ -51,6 +51,10 @@ bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run
 ui: $(STAMP) ## MLflow UI on the project's store (http://127.0.0.1:5000, PORT=... to change)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow.db \
 	  --default-artifact-root $(abspath $(OUTPUTS))/mlartifacts --host 127.0.0.1 --port $(PORT)
+
+server: $(STAMP) ## MLflow tracking server on a local SQLite database (for tracking=server)
+	$(VENV)/bin/mlflow server --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow-server.db \
+	  --artifacts-destination $(abspath $(OUTPUTS))/mlartifacts-server --host 127.0.0.1 --port $(PORT)
 
 lint: $(STAMP) ## ruff
 	$(VENV)/bin/ruff check mrcert tests benchmarks

@@ -58,19 +58,20 @@ def main() -> None:
     }
     print(
         f"cloud: {n:,} points, {W}x{H}, batch of {args.motions} motions, {args.threads} threads, "
-        f"median of {args.repeats}"
+        f"median of {args.repeats} interleaved repeats"
     )
-    print(f"{'method':<32}{'s/batch':>10}{'images/s':>12}{'Mpoint-images/s':>18}{'vs open3d':>11}")
-    base = None
-    for name, fn in cases.items():
+    for fn in cases.values():
         fn()  # warm-up (numba compilation, caches)
-        times = []
-        for _ in range(args.repeats):
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    for _ in range(args.repeats):  # interleaved, so that a slow moment of the machine hits every method
+        for name, fn in cases.items():
             start = time.perf_counter()
             fn()
-            times.append(time.perf_counter() - start)
-        med = statistics.median(times)
-        base = base or med
+            times[name].append(time.perf_counter() - start)
+    print(f"{'method':<32}{'s/batch':>10}{'images/s':>12}{'Mpoint-images/s':>18}{'vs open3d':>11}")
+    base = statistics.median(times["open3d project_to_rgbd_image"])
+    for name, ts in times.items():
+        med = statistics.median(ts)
         print(
             f"{name:<32}{med:>10.3f}{args.motions / med:>12.1f}{n * args.motions / med / 1e6:>18.1f}"
             f"{base / med:>10.2f}x"

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -41,20 +43,60 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     return result
 
 
+STORAGE_ERRORS = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT)
+
+
+def _user_error(exc: BaseException) -> str | None:
+    """The one-line message for an error the user can fix, else None (a bug: keep the traceback)."""
+    if isinstance(exc, MrcertError):
+        return str(exc)
+    if isinstance(exc, OSError) and exc.errno in STORAGE_ERRORS:
+        where = f" {exc.filename}" if exc.filename else ""
+        return f"cannot write{where}: {exc.strerror}; free some space or point paths.outputs / MRCERT_OUTPUTS elsewhere"
+    return None
+
+
 @hydra.main(version_base="1.3", config_path=str(mrcert_config.CONF_DIR), config_name="config")
 def _hydra_main(cfg: DictConfig) -> dict[str, Any]:
     hc = HydraConfig.get()
     try:
         return run_task(cfg, Path(hc.runtime.output_dir))
-    except MrcertError as exc:
-        if hc.mode == RunMode.MULTIRUN:
-            raise  # Hydra records the failed job and goes on with the others
-        print(f"mrcert: error: {exc}", file=sys.stderr)
+    except Exception as exc:
+        message = _user_error(exc)
+        if message is None or hc.mode == RunMode.MULTIRUN:
+            raise  # a bug keeps its traceback; in a multirun Hydra records the job and goes on
+        print(f"mrcert: error: {message}", file=sys.stderr)
         sys.exit(2)
+
+
+def _outputs_root(argv: list[str]) -> Path:
+    """Where this launch writes: ``paths.outputs=`` on the command line, MRCERT_OUTPUTS, or outputs/."""
+    for arg in argv:
+        if arg.startswith("paths.outputs="):
+            return Path(arg.split("=", 1)[1])
+    return Path(os.environ.get("MRCERT_OUTPUTS", "outputs"))
+
+
+def check_writable(root: Path) -> str | None:
+    """Why ``root`` cannot hold mrcert's outputs, or None."""
+    existing = root.resolve()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        return (
+            f"the output folder {str(root)!r} is not writable ({existing} is read-only or not a folder); "
+            "point paths.outputs=... or MRCERT_OUTPUTS at a writable folder"
+        )
+    return None
 
 
 def main() -> None:
     mrcert_config.new_launch_uid()
+    if not any(a in ("--help", "-h", "--hydra-help", "--info", "-i") or a.startswith("--cfg") for a in sys.argv[1:]):
+        problem = check_writable(_outputs_root(sys.argv[1:]))
+        if problem:
+            print(f"mrcert: error: {problem}", file=sys.stderr)
+            sys.exit(2)
     _hydra_main()
 
 

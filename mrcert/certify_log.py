@@ -79,7 +79,12 @@ def read_log(path: Path, required: list[str] = COHEN_COLUMNS[:5]) -> pd.DataFram
 
 def merge_logs(paths: Iterable[Path]) -> pd.DataFrame:
     """Shards (or pieces) of one certification merged into one table; an index twice is an error."""
-    df = pd.concat([read_log(p) for p in paths], ignore_index=True)
+    return concat_logs([read_log(p) for p in paths])
+
+
+def concat_logs(logs: list[pd.DataFrame]) -> pd.DataFrame:
+    """Logs of disjoint image sets as one, sorted by idx; an index twice is an error."""
+    df = pd.concat(logs, ignore_index=True)
     dup = df["idx"][df["idx"].duplicated()]
     if len(dup):
         raise MrcertError(f"test images {sorted(set(dup.tolist()))[:10]} appear in more than one log")

@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 from torch import nn
 
 from mrcert.errors import MrcertError
-from mrcert.models import build_model
+from mrcert.models import build_model, for_inference
 
 BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
@@ -107,4 +107,4 @@ def load_classifier(cfg: DictConfig, num_classes: int, device: torch.device) -> 
         )
     model = build_model(cfg.model, num_classes)
     model.load_state_dict(state["model"])
-    return model.to(device).eval()
+    return for_inference(model, device)

@@ -106,10 +106,11 @@ RULES: dict[str, Rule] = {
     "n": (_positive_int, "an integer >= 1"),
     "n0": (_positive_int, "an integer >= 1"),
     "skip": (_positive_int, "an integer >= 1"),
-    "max": (_positive_int, "an integer >= 1, or null for all"),
+    "max": (lambda v: v is None or _positive_int(v), "an integer >= 1, or null for all"),
     "shard": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
     "num_shards": (_positive_int, "an integer >= 1"),
     "crop_sigmas": (_positive, "a finite number > 0"),
+    "look": (_positive_int, "an integer >= 1"),
     "sigmas": (
         lambda v: isinstance(v, list) and len(v) > 0 and all(_positive(x) for x in v),
         "a non-empty list of finite numbers > 0",
@@ -155,10 +156,11 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("task.name", name, f"one of {', '.join(TASKS)}")
     for path, value in _leaves(data):
         rule = rule_for(path)
-        if rule is not None and value is not None and not rule[0](value):
+        if rule is not None and not rule[0](value):
             raise ConfigError(path, value, rule[1])
     task = data.get("task", {})
-    if task.get("num_shards") is not None and not 0 <= task.get("shard", 0) < task["num_shards"]:
+    shard, shards = task.get("shard", 0), task.get("num_shards")
+    if isinstance(shards, int) and isinstance(shard, int) and not 0 <= shard < shards:
         raise ConfigError("task.shard", task.get("shard"), f"an integer in [0, task.num_shards={task['num_shards']})")
     extent = task.get("extent") or {}
     for axis, value in extent.items():

@@ -80,9 +80,8 @@ def project(
     if backend == "numba":
         if device.type != "cpu":
             raise ValueError(f"the numba projection backend needs CPU tensors, got device {device}")
-        winner, depth = _zbuffer_numba(xyz, R, t, intr, height, width)
-    else:
-        winner, depth = _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements)
+        return _project_numba(xyz, colors, R, t, intr, height, width, background)
+    winner, depth = _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements)
     images = _gather_colors(colors, winner, background, height, width)
     return images, depth.view(-1, height, width)
 
@@ -92,12 +91,27 @@ def camera_points(points: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
 
     So ``project(camera_points(P, m), zero motion)`` equals ``project(P, m)`` bit for bit; use it
     to move a cloud into a camera's frame (for a camera-to-world pose: ``m = matrix_to_motion(pose)``).
+    CPU tensors go through a compiled parallel kernel, others through torch; both give the same bits.
     """
     xyz = torch.as_tensor(points).to(torch.float64)
     motion = torch.as_tensor(motion, dtype=torch.float64, device=xyz.device).reshape(1, 6)
     r = rotvec_to_matrix(motion[:, 3:])
+    if xyz.device.type == "cpu":
+        out = np.empty((xyz.shape[0], 3), np.float64)
+        _camera_kernel(np.ascontiguousarray(xyz.numpy()), r[0].numpy(), motion[0, :3].numpy(), out)
+        return torch.from_numpy(out)
     dx, dy, dz = (xyz[:, i][None, :] - motion[:, i : i + 1] for i in range(3))
     return torch.stack([_camera_coordinate(r, j, dx, dy, dz)[0] for j in range(3)], dim=1)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _camera_kernel(P, R, t, out):  # pragma: no cover - compiled
+    for i in numba.prange(P.shape[0]):
+        dx = P[i, 0] - t[0]
+        dy = P[i, 1] - t[1]
+        dz = P[i, 2] - t[2]
+        for j in range(3):
+            out[i, j] = R[0, j] * dx + R[1, j] * dy + R[2, j] * dz
 
 
 def _check_inputs(points, colors, K, motions, height, width) -> None:
@@ -163,31 +177,45 @@ def _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements):
     return torch.cat(winners), torch.cat(depths)
 
 
-def _zbuffer_numba(xyz, R, t, intr, height, width):
-    fx, fy, cx, cy = intr
-    pts = np.ascontiguousarray(xyz.numpy().T)  # (3, N): one contiguous array per coordinate
-    b = R.shape[0]
-    winner = np.full((b, height * width), -1, dtype=np.int64)
+def _project_numba(xyz, colors, R, t, intr, height, width, background):
+    """Images and depth from the compiled kernel, which also fills each image from its z-buffer."""
+    dtype = colors.dtype if colors.is_floating_point() else torch.float32
+    table = np.ascontiguousarray(colors.to(dtype).numpy())
+    b, c = R.shape[0], table.shape[1]
+    images = np.empty((b, c, height * width), dtype=table.dtype)
     depth = np.full((b, height * width), np.inf, dtype=np.float64)
     if b:
-        _zbuffer_kernel(pts[0], pts[1], pts[2], R.numpy(), t.numpy(), fx, fy, cx, cy, height, width, winner, depth)
-    return torch.from_numpy(winner), torch.from_numpy(depth)
+        _zbuffer_kernel(
+            np.ascontiguousarray(xyz.numpy()),
+            table,
+            R.numpy(),
+            t.numpy(),
+            *intr,
+            height,
+            width,
+            background,
+            images,
+            depth,
+        )
+    return torch.from_numpy(images).view(b, c, height, width), torch.from_numpy(depth).view(b, height, width)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _zbuffer_kernel(X, Y, Z, R, t, fx, fy, cx, cy, height, width, winner, depth):  # pragma: no cover - compiled
-    n = X.shape[0]
+def _zbuffer_kernel(P, colors, R, t, fx, fy, cx, cy, height, width, background, images, depth):  # pragma: no cover
+    """For each motion (in parallel): the z-buffer over all points in index order (the strict
+    ``<`` keeps the lowest index among equal depths), then the image from the winners."""
+    n = P.shape[0]
     for b in numba.prange(R.shape[0]):
         r00, r01, r02 = R[b, 0, 0], R[b, 0, 1], R[b, 0, 2]
         r10, r11, r12 = R[b, 1, 0], R[b, 1, 1], R[b, 1, 2]
         r20, r21, r22 = R[b, 2, 0], R[b, 2, 1], R[b, 2, 2]
         tx, ty, tz = t[b, 0], t[b, 1], t[b, 2]
         zbuf = depth[b]
-        wbuf = winner[b]
+        wbuf = np.full(height * width, -1, np.int64)
         for i in range(n):
-            dx = X[i] - tx
-            dy = Y[i] - ty
-            dz = Z[i] - tz
+            dx = P[i, 0] - tx
+            dy = P[i, 1] - ty
+            dz = P[i, 2] - tz
             zc = r02 * dx + r12 * dy + r22 * dz
             if not zc > 0.0:
                 continue
@@ -201,3 +229,8 @@ def _zbuffer_kernel(X, Y, Z, R, t, fx, fy, cx, cy, height, width, winner, depth)
             if zc < zbuf[p]:
                 zbuf[p] = zc
                 wbuf[p] = i
+        image = images[b]
+        for p in range(height * width):
+            w = wbuf[p]
+            for ch in range(image.shape[0]):
+                image[ch, p] = colors[w, ch] if w >= 0 else background

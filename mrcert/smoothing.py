@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import hashlib
 import time
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from scipy.stats import beta, binomtest, norm
 
-from mrcert.data.samples import TestSample
+from mrcert.data.samples import CropBound, TestSample
 from mrcert.errors import MrcertError
 from mrcert.geometry import axis_index
 
@@ -85,11 +88,16 @@ class SmoothingDistribution:
             motions[:, axis_index(a)] = noise[:, j] * s
         return motions
 
-    def crop_bound(self, sigmas: float) -> tuple[float, float]:
-        """(max translation, max rotation) covering ``sigmas`` standard deviations on each axis."""
-        t = [s for a, s in zip(self.axes, self.sigmas, strict=True) if a.startswith("t")]
-        r = [s for a, s in zip(self.axes, self.sigmas, strict=True) if a.startswith("r")]
-        return sigmas * float(np.sqrt(np.sum(np.square(t)))), sigmas * float(np.sum(r))
+    def crop_bound(self, sigmas: float) -> CropBound:
+        """The exact-crop bound covering ``sigmas`` standard deviations on every smoothed axis."""
+        box = [0.0, 0.0, 0.0]
+        rotation, axis = 0.0, None
+        for a, s in zip(self.axes, self.sigmas, strict=True):
+            if a.startswith("t"):
+                box[axis_index(a)] = sigmas * s
+            else:
+                rotation, axis = sigmas * s, a
+        return CropBound(tuple(box), rotation, roll_only=axis in (None, "rz"))
 
 
 def image_generator(seed: int, index: int, *stream) -> torch.Generator:
@@ -113,6 +121,7 @@ class Certificate:
     radius: float
     count_a: int
     p_a_lower: float
+    n: int = 0  # estimation samples drawn (the sequential mode may stop early)
 
 
 class MotionSmoothedClassifier:
@@ -136,24 +145,43 @@ class MotionSmoothedClassifier:
         batch_size: int = 200,
         device: torch.device | str = "cpu",
         backend: str = "auto",
+        overlap: bool = False,
     ):
         self.base, self.sample, self.distribution = base, sample, distribution
         self.num_classes, self.batch_size, self.device, self.backend = num_classes, batch_size, device, backend
-        self.timings = {"render": 0.0, "model": 0.0}  # seconds spent rendering and in the base classifier
+        self.overlap = overlap
+        self.timings = {"render": 0.0, "model": 0.0}  # seconds waiting for renders, and in the base classifier
 
     @torch.inference_mode()
     def counts(self, motions: torch.Tensor) -> np.ndarray:
-        """Votes of the base classifier over the renders at ``motions`` (B, 6), in batches."""
+        """Votes of the base classifier over the renders at ``motions`` (B, 6), in batches.
+
+        With ``overlap``, a worker thread renders the next batch while the model classifies
+        the current one (the projection kernel and torch both release the GIL); ``timings``
+        then counts only the time the model waited for renders.
+        """
+        batches = [motions[s : s + self.batch_size] for s in range(0, len(motions), self.batch_size)]
+        render = partial(self._render, backend=self.backend)
         votes = np.zeros(self.num_classes, np.int64)
-        for s in range(0, len(motions), self.batch_size):
-            start = time.perf_counter()
-            images, _ = self.sample.render(motions[s : s + self.batch_size], backend=self.backend)
-            rendered = time.perf_counter()
-            predictions = self.base(images.to(self.device, non_blocking=True)).argmax(1).cpu().numpy()
-            self.timings["render"] += rendered - start
-            self.timings["model"] += time.perf_counter() - rendered
-            votes += np.bincount(predictions, minlength=self.num_classes)
+        with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
+            pending = pool.submit(render, batches[0]) if pool and batches else None
+            for k, batch in enumerate(batches):
+                start = time.perf_counter()
+                if pool:
+                    images = pending.result()
+                    if k + 1 < len(batches):
+                        pending = pool.submit(render, batches[k + 1])
+                else:
+                    images = render(batch)
+                rendered = time.perf_counter()
+                predictions = self.base(images.to(self.device, non_blocking=True)).argmax(1).cpu().numpy()
+                self.timings["render"] += rendered - start
+                self.timings["model"] += time.perf_counter() - rendered
+                votes += np.bincount(predictions, minlength=self.num_classes)
         return votes
+
+    def _render(self, motions: torch.Tensor, backend: str) -> torch.Tensor:
+        return self.sample.render(motions, backend=backend)[0]
 
     def sample_counts(self, n: int, generator: torch.Generator, center: torch.Tensor | None = None) -> np.ndarray:
         """Votes over ``n`` motions ``center + eps`` (one-axis and translation parts add exactly)."""
@@ -183,6 +211,37 @@ class MotionSmoothedClassifier:
         c_a = int(np.argmax(selection))
         count_a = int(self.sample_counts(n, generator)[c_a])
         p_a = lower_confidence_bound(count_a, n, alpha)
+        return self._certificate(c_a, count_a, n, p_a)
+
+    def _certificate(self, c_a: int, count_a: int, n: int, p_a: float) -> Certificate:
         if p_a < 0.5:
-            return Certificate(ABSTAIN, 0.0, count_a, p_a)
-        return Certificate(c_a, self.distribution.radius(p_a), count_a, p_a)
+            return Certificate(ABSTAIN, 0.0, count_a, p_a, n)
+        return Certificate(c_a, self.distribution.radius(p_a), count_a, p_a, n)
+
+    def certify_sequential(
+        self, n0: int, n_max: int, alpha: float, radius: float, look: int, generator: torch.Generator
+    ) -> Certificate:
+        """CERTIFY with optional stopping, for a requested ``radius``.
+
+        After ``n0`` selection samples, estimation samples are drawn ``look`` at a time and the
+        anytime-valid confidence sequence of :mod:`mrcert.sequential` is checked after each
+        look: it stops once the lower bound reaches the probability that ``radius`` needs, or
+        once the upper bound shows that it never will, or at ``n_max``. The radius reported is
+        ``radius(lower bound at the stop)``, valid at that data-dependent time because the
+        sequence holds at all times at once (probability >= 1 - alpha). Looks are fixed in
+        number of samples, so the result does not depend on the batch size.
+        """
+        from mrcert.sequential import BetaBinomialCS
+
+        c_a = int(np.argmax(self.sample_counts(n0, generator)))
+        cs = BetaBinomialCS(alpha)
+        need = float(norm.cdf(radius / (self.distribution.sigmas[0] if self.distribution.single else 1.0)))
+        need = max(need, 0.5)
+        count_a, t = 0, 0
+        while t < n_max:
+            m = min(look, n_max - t)
+            count_a += int(self.sample_counts(m, generator)[c_a])
+            t += m
+            if cs.lower(count_a, t) >= need or cs.upper(count_a, t) < need:
+                break
+        return self._certificate(c_a, count_a, t, cs.lower(count_a, t))

@@ -70,8 +70,21 @@ class Runs:
         run = self.find(tasks, **keys)
         if run is None:
             return float("nan")
+        if _is_shard(run):  # one shard's metrics describe its share only: use the merged log
+            log = self.log_of(run)
+            radius, step = float(run["params.motion.radius"]), float(run["params.motion.radius_step"])
+            return certify_log.metrics(log, radius, step, radius)[0].get(name, float("nan"))
         value = run.get(f"metrics.{name}")
         return float(value) if value is not None and not pd.isna(value) else float("nan")
+
+    def log_of(self, run: pd.Series) -> pd.DataFrame | None:
+        """A certify run's log; for a shard, the merged logs of the latest run of every shard."""
+        if not _is_shard(run):
+            return _certify_log(run)
+        group = self.df[self.df.get("tags.mrcert.shard_group") == run["tags.mrcert.shard_group"]]
+        latest = group.drop_duplicates("params.task.shard")  # df is sorted newest first
+        logs = [_certify_log(r) for _, r in latest.iterrows()]
+        return None if any(log is None for log in logs) else certify_log.concat_logs(logs)
 
 
 CERTIFY_TASKS = ("certify", "import")
@@ -212,7 +225,7 @@ def sweep_table(runs: Runs, parent: str | None = None) -> pd.DataFrame:
         df = df[df.get("tags.mlflow.parentRunId") == parent]
     rows = []
     for _, run in df.iterrows():
-        log = _certify_log(run)
+        log = runs.log_of(run)
         if log is None:
             continue
         step = float(run.get("params.motion.radius_step", run.get("params.task.radius_step", "nan")))
@@ -243,7 +256,7 @@ def curves(runs: Runs, archs=ARCHS, axes=AXES_ORDER) -> dict[str, dict[str, tupl
         for a in archs:
             for v in VARIANTS:
                 run = runs.find(CERTIFY_TASKS, arch=a, variant=v, axis=ax)
-                log = None if run is None else _certify_log(run)
+                log = None if run is None else runs.log_of(run)
                 if log is not None:
                     out.setdefault(ax, {})[model_label(a, v)] = certify_log.curve(log)
     return out
@@ -354,6 +367,10 @@ def _build(
     df = pd.DataFrame.from_dict(data, orient="index")
     df.index = pd.MultiIndex.from_tuples(df.index, names=index_names)
     return df
+
+
+def _is_shard(run: pd.Series) -> bool:
+    return isinstance(run.get("tags.mrcert.shard_group"), str)
 
 
 def _certify_log(run: pd.Series) -> pd.DataFrame | None:

@@ -170,6 +170,13 @@ def fail_parent(cfg: DictConfig) -> None:
         configure(cfg.tracking).MlflowClient().set_terminated(info["run_id"], "FAILED")
 
 
+def shard_group(cfg: DictConfig) -> str:
+    """The config key shared by every shard of one sharded job (``task.shard`` set to 0)."""
+    whole = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+    whole.task.shard = 0
+    return config_key(whole)
+
+
 def same_config_run(cfg: DictConfig, experiment_id: str, finished: bool):
     """The latest FINISHED (or, with ``finished=False``, not finished) run of this config."""
     import mlflow
@@ -219,6 +226,8 @@ def task_run(cfg: DictConfig, output_dir: Path) -> Iterator[Tracker]:
         run_ctx = mlflow.start_run(run_id=previous.info.run_id)
     else:
         tags = run_tags(cfg) | {"mrcert.output_dir": str(output_dir.resolve()), "mrcert.config_key": config_key(cfg)}
+        if int(OmegaConf.select(cfg, "task.num_shards", default=1) or 1) > 1:
+            tags["mrcert.shard_group"] = shard_group(cfg)
         run_ctx = mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags)
     with run_ctx as run:
         if previous is None:

@@ -1,8 +1,17 @@
 import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+
+from mrcert.config import CONF_DIR
 
 os.environ.setdefault("MLFLOW_ENABLE_ASYNC_LOGGING", "false")
 
@@ -34,3 +43,46 @@ def random_motions(rng: np.random.Generator, per_axis: int = 3) -> torch.Tensor:
             rows.append(m)
     rows += list(rng.uniform(-1, 1, (per_axis, 6)) * scale)
     return torch.tensor(np.array(rows))
+
+
+# A tiny quick MetaRoom (3 classes, coarse surfaces) and a tiny CNN: real runs in seconds.
+TINY = [
+    "data=metaroom_synth",
+    "model=small_cnn",
+    "model.net.width=8",
+    "data.classes=[can,mug,apple]",
+    "data.room_density=0.03",
+    "data.density=0.01",
+    "data.protocol.train.per_class=16",
+]
+
+
+def compose_cfg(overrides: list[str], outputs=None):
+    """The composed config for ``overrides``, writing under ``outputs`` when given."""
+    extra = [f"paths.outputs={outputs}"] if outputs is not None else []
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=[*overrides, *extra])
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run_cli(args: list[str], outputs, timeout: int = 600) -> subprocess.CompletedProcess:
+    """``python -m mrcert ARGS`` writing under ``outputs``; output captured."""
+    env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
+    return subprocess.run(
+        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def kill_when(args: list[str], outputs, ready: Callable[[], bool], timeout: float = 240) -> None:
+    """Start ``mrcert ARGS`` and SIGKILL it as soon as ``ready()`` holds (a crash at that moment)."""
+    env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.time() + timeout
+    while time.time() < deadline and proc.poll() is None and not ready():
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()

@@ -1,22 +1,18 @@
 """The entry point end to end: task runs land in MLflow with params, tags and artifacts."""
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import mlflow
 import pytest
 
+from tests.conftest import run_cli
+
 ROOT = Path(__file__).resolve().parent.parent
 FAST = ["task=render", "data=testscene", "data.density=0.03", "task.num=2", "task.axes=[tx,rz]"]
 
 
-def mrcert(args: list[str], outputs: Path, check: bool = True) -> subprocess.CompletedProcess:
-    env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
-    proc = subprocess.run(
-        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
-    )
+def mrcert(args: list[str], outputs: Path, check: bool = True):
+    proc = run_cli(args, outputs, timeout=300)
     if check:
         assert proc.returncode == 0, proc.stderr[-3000:]
     return proc

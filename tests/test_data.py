@@ -13,6 +13,7 @@ from PIL import Image
 from mrcert.config import CONF_DIR, validate
 from mrcert.data.datasets import Augment, load, render_poses
 from mrcert.data.protocols import look_at_poses
+from mrcert.data.samples import CropBound
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.geometry import matrix_to_motion
 from mrcert.projection import camera_points
@@ -132,16 +133,27 @@ def test_cache_hits_on_same_config_and_misses_on_change(tmp_path):
     assert aug.cache_info["train-rz-aug"]["hit"] is False and not np.array_equal(np.array(augmented.images), images)
 
 
-def test_crop_is_exact_within_its_bound_and_falls_back_beyond(tmp_path, rng):
+@pytest.mark.parametrize(
+    "bound,scale",
+    [
+        (None, [0.28] * 6),  # data.crop: the cone test, any rotation
+        (CropBound((0.0, 0.0, 0.6)), [0, 0, 0.6, 0, 0, 0]),  # tz: the widened frustum
+        (CropBound((0.3, 0.0, 0.0)), [0.3, 0, 0, 0, 0, 0]),  # tx
+        (CropBound((0.0, 0.0, 0.0), 0.7), [0, 0, 0, 0, 0, 0.7]),  # rz: roll keeps the distance to the axis
+        (CropBound((0.3, 0.3, 0.6), 0.7), [0.3, 0.3, 0.6, 0, 0, 0.7]),  # Theorem 1: translations + roll
+    ],
+)
+def test_crop_is_exact_within_its_bound_and_falls_back_beyond(bound, scale, tmp_path, rng):
     bundle = load(data_cfg("metaroom_synth", TINY, tmp_path))
-    sample = bundle.samples()[0]
+    sample = bundle.samples(crop=bound)[0]
     assert sample.label == 0 and sample.K[0, 0] == 386.274 and (sample.height, sample.width) == (90, 160)
     assert len(sample.crop_points) < 0.7 * len(sample.points)
     full = type(sample)(sample.points, sample.colors, sample.K, 90, 160, 0)  # no crop
-    within = torch.tensor(rng.uniform(-1, 1, (40, 6)) * [0.28, 0.28, 0.28, 0.28, 0.28, 0.28])
+    within = torch.tensor(rng.uniform(-1, 1, (40, 6)) * scale)
     within = within[sample.within_bound(within)]
     assert len(within) > 20
-    beyond = torch.tensor(rng.uniform(-1, 1, (10, 6)) * [0.8, 0.8, 0.8, 0.8, 0.8, 0.8])
+    beyond = torch.tensor(rng.uniform(-1, 1, (10, 6)) * np.maximum(scale, 0.05) * 3)
+    assert not sample.within_bound(beyond).all()
     for motions in (within, beyond, torch.cat([within[:5], beyond[:5]])):
         img_c, dep_c = sample.render(motions)
         img_f, dep_f = full.render(motions)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from mrcert import projection
 from mrcert.geometry import AXES, axis_index, compose, motion_to_matrix, rotvec_to_matrix
 from mrcert.projection import camera_points, project
 from tests.conftest import PAPER_K, random_cloud, random_motions
@@ -207,6 +208,13 @@ def test_camera_points_are_the_pose_frame_and_render_exactly(rng):
         a, _ = project(cam, colors, PAPER_K, torch.zeros(1, 6, dtype=torch.float64), H, W)
         b, _ = project(points, colors, PAPER_K, motion[None], H, W)
         assert torch.equal(a, b)
+    # The compiled CPU kernel and the torch expression give the same bits.
+    motion = random_motions(rng, per_axis=1)[-1]
+    via_torch = projection._camera_coordinate  # the torch formula, used on non-CPU devices
+    r = rotvec_to_matrix(motion[None, 3:])
+    d = [points[:, i][None, :] - motion[i] for i in range(3)]
+    expected = torch.stack([via_torch(r, j, *d)[0] for j in range(3)], dim=1)
+    assert torch.equal(camera_points(points, motion), expected)
     moved = camera_points(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([0.1, 0, 0, 0, 0, 0.0]))
     assert moved[0, 0] < 0
 

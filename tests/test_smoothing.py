@@ -1,10 +1,5 @@
 """Motion smoothing: exact statistics, PREDICT, determinism across batches and shards, resume, import."""
 
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import mlflow
@@ -12,14 +7,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from scipy.stats import beta, norm
 from statsmodels.stats.proportion import proportion_confint
 from torch import nn
 
 from mrcert.__main__ import run_task
 from mrcert.certify_log import ResultLog, merge_logs, read_log
-from mrcert.config import CONF_DIR
 from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
 from mrcert.smoothing import (
@@ -29,25 +22,15 @@ from mrcert.smoothing import (
     image_generator,
     lower_confidence_bound,
 )
-from tests.conftest import PAPER_K
+from tests.conftest import PAPER_K, TINY, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
-TINY = [
-    "data=metaroom_synth",
-    "model=small_cnn",
-    "model.net.width=8",
-    "data.classes=[can,mug,apple]",
-    "data.room_density=0.03",
-    "data.density=0.01",
-    "data.protocol.train.per_class=16",
-]
 FAST_CERTIFY = ["task=certify", "task.n0=8", "task.n=40", "task.max=6", "task.batch_size=8"]
 TIMING = ["time", "seconds"]
 
 
-def compose_cfg(overrides, outputs):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=[*TINY, *overrides, f"paths.outputs={outputs}"])
+def tiny_cfg(overrides, outputs):
+    return compose_cfg([*TINY, *overrides], outputs)
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +38,7 @@ def trained(tmp_path_factory):
     """A store with one finished tiny train run (the classifier the tasks look up)."""
     outputs = tmp_path_factory.mktemp("store")
     run_task(
-        compose_cfg(["task=train", "task.epochs=2", "task.lr=0.05", "task.batch_size=8"], outputs),
+        tiny_cfg(["task=train", "task.epochs=2", "task.lr=0.05", "task.batch_size=8"], outputs),
         outputs / "runs" / "train",
     )
     return outputs
@@ -74,7 +57,8 @@ class Constant(nn.Module):
 
 def tiny_sample() -> TestSample:
     pts = np.random.default_rng(0).uniform([-1, -1, 2], [1, 1, 3], (500, 3))
-    return TestSample.build(pts, np.ones((500, 3), np.float32), PAPER_K, 90, 160, label=2)
+    colors = np.random.default_rng(1).uniform(0, 0.9, (500, 3)).astype(np.float32)
+    return TestSample.build(pts, colors, PAPER_K, 90, 160, label=2)
 
 
 def test_clopper_pearson_oracles():
@@ -121,7 +105,7 @@ def certify_rows(outputs: Path) -> pd.DataFrame:
 def test_rows_follow_the_formula_and_batch_size_and_shards_do_not_matter(trained, tmp_path):
     base = tmp_path / "base"
     run_task(
-        compose_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", "task.batch_size=200"], base),
+        tiny_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", "task.batch_size=200"], base),
         base / "runs" / "one",
     )
     reference = certify_rows(base)
@@ -135,14 +119,14 @@ def test_rows_follow_the_formula_and_batch_size_and_shards_do_not_matter(trained
         assert row.p_a_lower == p
     small = tmp_path / "small"
     run_task(
-        compose_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", "task.batch_size=7"], small),
+        tiny_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", "task.batch_size=7"], small),
         small / "runs" / "one",
     )
     pd.testing.assert_frame_equal(certify_rows(small), reference)
     sharded = tmp_path / "sharded"
     for shard in range(3):
         run_task(
-            compose_cfg(
+            tiny_cfg(
                 [*FAST_CERTIFY, f"model.checkpoint={best(trained)}", f"task.shard={shard}", "task.num_shards=3"],
                 sharded,
             ),
@@ -159,26 +143,19 @@ def best(outputs: Path) -> Path:
 def test_certify_killed_and_restarted_resumes_to_the_identical_tsv(trained, tmp_path):
     args = [*TINY, *FAST_CERTIFY, "task.max=8", f"model.checkpoint={best(trained)}"]
     full = tmp_path / "full"
-    run_task(compose_cfg(args[len(TINY) :], full), full / "runs" / "one")
-    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path / "killed")}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    deadline = time.time() + 240
-    while time.time() < deadline and proc.poll() is None:
-        logs = list((tmp_path / "killed").glob("runs/certify/*/certify.tsv"))
-        if logs and len(logs[0].read_text().splitlines()) >= 3:  # header + 2 rows
-            break
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    run_task(tiny_cfg(args[len(TINY) :], full), full / "runs" / "one")
+    killed = tmp_path / "killed"
+
+    def two_rows_written() -> bool:
+        logs = list(killed.glob("runs/certify/*/certify.tsv"))
+        return bool(logs) and len(logs[0].read_text().splitlines()) >= 3  # header + 2 rows
+
+    kill_when(args, killed, two_rows_written)
     (log,) = (tmp_path / "killed").glob("runs/certify/*/certify.tsv")
     assert len(log.read_text().splitlines()) < 9, "the run finished before it could be killed"
     with open(log, "a") as f:
         f.write("7\t1\t0\t0.0")  # a torn last line, as a crash mid-write leaves it
-    done = subprocess.run(
-        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
-    )
+    done = run_cli(args, killed)
     assert done.returncode == 0, done.stderr[-2000:]
     assert list((tmp_path / "killed").glob("runs/certify/*/certify.tsv")) == [log]  # continued in place
     pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), certify_rows(full))
@@ -199,7 +176,7 @@ def test_import_of_a_hand_written_cohen_log(tmp_path):
     )
     outputs = tmp_path / "out"
     result = run_task(
-        compose_cfg(
+        tiny_cfg(
             [
                 "task=import",
                 f"task.path={log}",
@@ -238,13 +215,11 @@ def test_result_log_truncates_a_torn_line_and_checks_its_header(tmp_path):
 
 def test_smooth_and_attack_tasks(trained, tmp_path):
     ck = f"model.checkpoint={best(trained)}"
-    smooth = run_task(compose_cfg(["task=smooth", "task.n=30", "task.max=3", ck], tmp_path), tmp_path / "s")
+    smooth = run_task(tiny_cfg(["task=smooth", "task.n=30", "task.max=3", ck], tmp_path), tmp_path / "s")
     assert 0 <= smooth["smoothed_benign_accuracy"] <= 1 and smooth["num_images"] == 3
     for name in ("uniform", "grid"):
         out = run_task(
-            compose_cfg(
-                ["task=attack", f"attack={name}", "attack.k=4", "task.n=20", "task.max=3", ck], tmp_path / name
-            ),
+            tiny_cfg(["task=attack", f"attack={name}", "attack.k=4", "task.n=20", "task.max=3", ck], tmp_path / name),
             tmp_path / name / "a",
         )
         df = read_log(next((tmp_path / name / "a").glob("attack.tsv")), ["idx", "base_robust"])
@@ -260,7 +235,7 @@ def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_predicti
     from mrcert.checkpoints import load_classifier
     from mrcert.data.datasets import load
 
-    cfg = compose_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}"], tmp_path)
+    cfg = tiny_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}"], tmp_path)
     bundle = load(cfg.data)
     model = load_classifier(cfg, 3, torch.device("cpu"))
     dist = SmoothingDistribution(("tz",), (0.1,))
@@ -280,3 +255,20 @@ def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_predicti
     assert trials > 0
     # Each certificate fails with probability <= alpha = 0.01; allow a generous binomial margin.
     assert changed <= max(1, int(0.05 * trials))
+
+
+class Brightness(nn.Module):
+    """A classifier whose answer depends on the rendered image (how many pixels are not background)."""
+
+    def forward(self, x):
+        cls = (x < 1).sum(dim=(1, 2, 3)) % 4
+        return torch.nn.functional.one_hot(cls, 4).float()
+
+
+def test_overlapped_rendering_gives_the_same_votes():
+    dist = SmoothingDistribution(("rz",), (0.3,))
+    plain = MotionSmoothedClassifier(Brightness(), tiny_sample(), dist, 4, batch_size=100)
+    overlapped = MotionSmoothedClassifier(Brightness(), tiny_sample(), dist, 4, batch_size=100, overlap=True)
+    a = plain.sample_counts(450, image_generator(0, 9))
+    b = overlapped.sample_counts(450, image_generator(0, 9))
+    assert a.sum() == 450 and (a > 0).sum() > 1 and np.array_equal(a, b)

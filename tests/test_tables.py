@@ -1,42 +1,24 @@
 """Tables and figure from a small store of real tiny runs and imported logs."""
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import mlflow
 import numpy as np
 import pandas as pd
 import pytest
-from hydra import compose, initialize_config_dir
 
 from mrcert import tables
 from mrcert.__main__ import run_task
 from mrcert.certify_log import read_log
-from mrcert.config import CONF_DIR
+from tests.conftest import TINY, compose_cfg, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
-TINY = [
-    "data=metaroom_synth",
-    "model=small_cnn",
-    "model.net.width=8",
-    "data.classes=[can,mug,apple]",
-    "data.room_density=0.03",
-    "data.density=0.01",
-    "data.protocol.train.per_class=16",
-]
 EVAL = ["task.max=4", "task.batch_size=50"]
 # idx label predict radius correct time -- certified accuracy at 0.1: rows 0 and 18 -> 2/5.
 COHEN = (
     "idx\tlabel\tpredict\tradius\tcorrect\ttime\n0\t0\t0\t0.5\t1\t0:00:01\n6\t0\t0\t0.05\t1\t0:00:01\n"
     "12\t1\t-1\t0.0\t0\t0:00:01\n18\t1\t1\t0.2\t1\t0:00:01\n24\t2\t0\t0.3\t0\t0:00:01\n"
 )
-
-
-def compose_cfg(overrides, outputs):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=[*overrides, f"paths.outputs={outputs}"])
 
 
 @pytest.fixture(scope="module")
@@ -130,12 +112,8 @@ def test_figure_uses_the_exact_step_functions(store, tmp_path):
 
 
 def test_sweep_table_from_a_parents_children(store):
-    env = os.environ | {"MRCERT_OUTPUTS": str(store)}
-    proc = subprocess.run(
+    proc = run_cli(
         [
-            sys.executable,
-            "-m",
-            "mrcert",
             "-m",
             "task=import",
             f"task.path={store / 'cohen.tsv'}",
@@ -144,11 +122,7 @@ def test_sweep_table_from_a_parents_children(store):
             "motion=tz",
             "motion.sigma=0.05,0.1",
         ],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
+        store,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     mlflow.set_tracking_uri(f"sqlite:///{store / 'mlflow.db'}")

@@ -1,45 +1,23 @@
 """Training: loss goes down and is tracked, resume is exact, checkpoints are found, augmentation is real."""
 
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import mlflow
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from mrcert.__main__ import run_task
 from mrcert.checkpoints import find_checkpoint, load_classifier
-from mrcert.config import CONF_DIR
 from mrcert.data.datasets import Augment, load
 from mrcert.errors import MrcertError
 from mrcert.geometry import matrix_to_motion
 from mrcert.models import build_model
 from mrcert.projection import camera_points, project
+from tests.conftest import TINY, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
-TINY_TRAIN = [
-    "task=train",
-    "data=metaroom_synth",
-    "model=small_cnn",
-    "model.net.width=8",
-    "data.classes=[can,mug,apple]",
-    "data.room_density=0.03",
-    "data.density=0.01",
-    "data.protocol.train.per_class=16",
-    "task.batch_size=8",
-    "task.lr=0.02",
-]
-
-
-def compose_cfg(overrides, outputs):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=[*overrides, f"paths.outputs={outputs}"])
+TINY_TRAIN = [*TINY, "task=train", "task.batch_size=8", "task.lr=0.02", "data.protocol.train.per_class=16"]
 
 
 def train_in_process(overrides, outputs, name):
@@ -84,27 +62,12 @@ def test_killed_run_resumes_to_the_same_weights_in_the_same_mlflow_run(tmp_path)
     reference = weights(Path(full["checkpoint"]).with_name("last.pt"))
 
     outputs = tmp_path / "killed"
-    env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    deadline = time.time() + 240
-    while not list(outputs.glob("runs/train/*/last.pt")) and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    kill_when(args, outputs, lambda: bool(list(outputs.glob("runs/train/*/last.pt"))))
     (ckpt,) = outputs.glob("runs/train/*/last.pt")
     interrupted_at = torch.load(ckpt, weights_only=True)["epoch"]
     assert interrupted_at < 5, "the run finished before it could be killed"
 
-    done = subprocess.run(
-        [sys.executable, "-m", "mrcert", *args, "task.resume=true"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    done = run_cli([*args, "task.resume=true"], outputs)
     assert done.returncode == 0, done.stderr[-2000:]
     client = store(outputs)
     (run,) = client.search_runs([client.get_experiment_by_name("mrcert").experiment_id])

@@ -52,15 +52,19 @@ def read_poses(path: Path) -> tuple[list[str], dict[str, Split]]:
     if not path.is_file():
         raise MrcertError(f"poses file {str(path)!r} does not exist")
     try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise MrcertError(f"poses file {str(path)!r} is not valid JSON: {exc}") from None
+        doc = json.loads(path.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise MrcertError(f"poses file {str(path)!r} is not valid UTF-8 JSON: {exc}") from None
+    if not isinstance(doc, dict):
+        raise MrcertError(f"poses file {str(path)!r} must hold a JSON object with 'classes' and 'poses'")
     classes, entries = doc.get("classes"), doc.get("poses")
     if not isinstance(classes, list) or not classes or not isinstance(entries, list):
         raise MrcertError(f"poses file {str(path)!r} needs a non-empty 'classes' list and a 'poses' list")
     rows: dict[str, list[tuple[np.ndarray, int]]] = {s: [] for s in SPLITS}
     for i, e in enumerate(entries):
         where = f"{path}: poses[{i}]"
+        if not isinstance(e, dict):
+            raise MrcertError(f"{where}: must be an object with split, label and pose")
         if e.get("split") not in SPLITS:
             raise MrcertError(f"{where}: split {e.get('split')!r} is not allowed: train or test")
         if e.get("label") not in classes:

@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset
 
 from mrcert.data.cache import cached_arrays
-from mrcert.data.samples import TestSample
+from mrcert.data.samples import CropBound, TestSample
 from mrcert.data.synthetic import Split, SyntheticSource
 from mrcert.errors import MrcertError
 from mrcert.geometry import axis_index, matrix_to_motion, motion_to_matrix
@@ -115,11 +115,13 @@ class DataBundle(ABC):
         self.background = float(data.image.background)
         self.cache_info: dict[str, dict[str, Any]] = {}
 
-    def crop_args(self, crop: tuple[float, float] | None = None) -> dict[str, Any]:
-        """Crop bound for test samples: ``crop`` (max translation, max rotation) or ``data.crop``."""
+    def crop_args(self, crop: CropBound | None = None) -> dict[str, Any]:
+        """Crop bound for test samples: ``crop``, else ``data.crop`` (each translation component
+        up to ``max_translation``, a rotation about any axis up to ``max_rotation``)."""
         if crop is None and self.data.get("crop"):
-            crop = (float(self.data.crop.max_translation), float(self.data.crop.max_rotation))
-        return {} if crop is None else {"max_translation": crop[0], "max_rotation": crop[1]}
+            t = float(self.data.crop.max_translation)
+            crop = CropBound((t, t, t), float(self.data.crop.max_rotation), roll_only=False)
+        return {} if crop is None else {"bound": crop}
 
     @abstractmethod
     def train(self, augment: Augment | None = None) -> ImageSet:
@@ -130,9 +132,7 @@ class DataBundle(ABC):
         """Clean test images."""
 
     @abstractmethod
-    def samples(
-        self, downsampling: tuple[int, float] | None = None, crop: tuple[float, float] | None = None
-    ) -> SampleSet:
+    def samples(self, downsampling: tuple[int, float] | None = None, crop: CropBound | None = None) -> SampleSet:
         """Re-renderable test samples, in the order of :meth:`test` (``crop`` overrides ``data.crop``)."""
 
 
@@ -187,9 +187,7 @@ class PosedCloudData(DataBundle):
     def test(self) -> ImageSet:
         return self._images("test", None)
 
-    def samples(
-        self, downsampling: tuple[int, float] | None = None, crop: tuple[float, float] | None = None
-    ) -> SampleSet:
+    def samples(self, downsampling: tuple[int, float] | None = None, crop: CropBound | None = None) -> SampleSet:
         split = self.split("test")
 
         def make(i: int) -> TestSample:

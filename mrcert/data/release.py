@@ -20,7 +20,7 @@ from omegaconf import DictConfig
 from PIL import Image
 
 from mrcert.data.datasets import Augment, DataBundle, ImageSet, SampleSet
-from mrcert.data.samples import TestSample
+from mrcert.data.samples import CropBound, TestSample
 from mrcert.errors import MrcertError
 from mrcert.geometry import matrix_to_motion
 from mrcert.projection import camera_points
@@ -89,9 +89,7 @@ class ReleasedMetaRoom(DataBundle):
     def test(self) -> ImageSet:
         return ImageSet(*_image_folder(self.folder / "test", self.classes), self.classes)
 
-    def samples(
-        self, downsampling: tuple[int, float] | None = None, crop: tuple[float, float] | None = None
-    ) -> SampleSet:
+    def samples(self, downsampling: tuple[int, float] | None = None, crop: CropBound | None = None) -> SampleSet:
         files = [
             (label, p)
             for label, c in enumerate(self.classes)

@@ -3,10 +3,9 @@
 A :class:`TestSample` holds its scene ``V`` in the test pose's camera frame, the camera, and
 the label. Two sound speed-ups (issue 3, item 7):
 
-* an exact crop: the points that can land in the image under some motion with
-  ``|t| <= max_translation`` and rotation angle ``<= max_rotation``. Every other point stays
-  outside the image for such motions, so removing it changes no image; motions beyond the
-  bound are rendered from the full cloud.
+* an exact crop: the points that can land in the image under some motion within a
+  :class:`CropBound`. Every other point stays outside the image for such motions, so removing
+  it changes no image; motions beyond the bound are rendered from the full cloud.
 * optional two-stage down-sampling with open3d (every k-th point, then a voxel grid; the
   paper's per-axis values). The down-sampled cloud *is* the sample's ``V`` for every motion,
   so Lemma 1 still holds.
@@ -16,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 import torch
 
@@ -24,24 +24,78 @@ from mrcert.projection import Backend, project
 
 def frustum_half_angle(K: torch.Tensor, height: int, width: int) -> float:
     """Half-angle of the cone around the optical axis that contains the image's frustum."""
+    kx, ky = frustum_slopes(K, height, width)
+    return float(np.arctan(np.hypot(kx, ky)))
+
+
+def frustum_slopes(K: torch.Tensor, height: int, width: int) -> tuple[float, float]:
+    """``kx, ky`` with every landing point satisfying ``|X| <= kx Z`` and ``|Y| <= ky Z``."""
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    return float(np.arctan(np.hypot(max(cx, width - cx) / fx, max(cy, height - cy) / fy)))
+    return max(cx, width - cx) / fx, max(cy, height - cy) / fy
 
 
-def crop_mask(
-    points: torch.Tensor, K: torch.Tensor, height: int, width: int, max_translation: float, max_rotation: float
-) -> torch.Tensor:
-    """Points (camera frame) that may land in the image under a motion within the bound.
+@dataclass(frozen=True)
+class CropBound:
+    """The motions a test sample's crop is exact for: ``|t_i| <= translation[i]`` and a
+    rotation of angle ``<= rotation``, about the optical axis only when ``roll_only``.
 
-    If ``R^T (P - t)`` is in the frustum, the angle between ``P`` and the optical axis is at
-    most the frustum's cone half-angle + the rotation angle + ``asin(|t| / |P|)``; points
-    beyond that can never land (points within ``max_translation`` of the camera are kept).
+    Tests, for a camera-frame point ``P = (X, Y, Z)`` (each keeps every point that can land):
+
+    * no rotation: the frustum widened by the translation box,
+      ``|X| - Tx <= kx (Z + Tz)``, ``|Y| - Ty <= ky (Z + Tz)``;
+    * roll only: a roll keeps the distance to the optical axis, so
+      ``sqrt(X^2 + Y^2) - sqrt(Tx^2 + Ty^2) <= sqrt(kx^2 + ky^2) (Z + Tz)``;
+    * any rotation: the cone test, angle(P, z) <= frustum half-angle + rotation + asin(|T| / |P|).
     """
-    norm = torch.linalg.vector_norm(points, dim=1)
-    cos = (points[:, 2] / norm.clamp_min(1e-300)).clamp(-1, 1)
-    shift = torch.asin((max_translation / norm.clamp_min(1e-300)).clamp(max=1.0))
-    limit = frustum_half_angle(K, height, width) + max_rotation + shift + 1e-9
-    return (norm <= max_translation) | (torch.arccos(cos) <= limit)
+
+    translation: tuple[float, float, float]
+    rotation: float = 0.0
+    roll_only: bool = True
+
+    def contains(self, motions: torch.Tensor) -> torch.Tensor:
+        box = torch.tensor(self.translation, dtype=motions.dtype, device=motions.device)
+        ok = (motions[:, :3].abs() <= box).all(dim=1)
+        if self.roll_only:
+            return ok & (motions[:, 3:5] == 0).all(dim=1) & (motions[:, 5].abs() <= self.rotation)
+        return ok & (torch.linalg.vector_norm(motions[:, 3:], dim=1) <= self.rotation)
+
+    def mask(self, points: torch.Tensor, K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+        pts = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).cpu().numpy())
+        kx, ky = frustum_slopes(K, height, width)
+        mode = (0 if self.rotation == 0 else 1) if self.roll_only else 2
+        out = np.empty(len(pts), np.bool_)
+        _crop_kernel(
+            pts,
+            mode,
+            kx,
+            ky,
+            np.array(self.translation, np.float64),
+            frustum_half_angle(K, height, width) + self.rotation + 1e-9,
+            out,
+        )
+        return torch.from_numpy(out).to(torch.as_tensor(points).device)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _crop_kernel(P, mode, kx, ky, box, cone_limit, out):  # pragma: no cover - compiled
+    slack = 1e-9
+    t_xy = np.sqrt(box[0] * box[0] + box[1] * box[1])
+    t_norm = np.sqrt(t_xy * t_xy + box[2] * box[2])
+    kc = np.sqrt(kx * kx + ky * ky)
+    for i in numba.prange(P.shape[0]):
+        x, y, z = P[i, 0], P[i, 1], P[i, 2]
+        depth = z + box[2]
+        if mode == 0:
+            out[i] = depth > 0 and abs(x) - box[0] <= kx * depth + slack and abs(y) - box[1] <= ky * depth + slack
+        elif mode == 1:
+            out[i] = depth > 0 and np.sqrt(x * x + y * y) - t_xy <= kc * depth + slack
+        else:
+            norm = np.sqrt(x * x + y * y + z * z)
+            if norm <= t_norm:
+                out[i] = True
+            else:
+                angle = np.arccos(min(1.0, max(-1.0, z / norm)))
+                out[i] = angle <= cone_limit + np.arcsin(min(1.0, t_norm / norm))
 
 
 def downsample(points: np.ndarray, colors: np.ndarray, every_k: int, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -69,8 +123,7 @@ class TestSample:
     width: int
     label: int
     background: float = 1.0
-    max_translation: float = 0.0
-    max_rotation: float = 0.0
+    bound: CropBound | None = None
     crop_points: torch.Tensor | None = field(default=None, repr=False)  # the crop, in point order
     crop_colors: torch.Tensor | None = field(default=None, repr=False)
 
@@ -84,8 +137,7 @@ class TestSample:
         width: int,
         label: int,
         background: float = 1.0,
-        max_translation: float | None = None,
-        max_rotation: float | None = None,
+        bound: CropBound | None = None,
         downsampling: tuple[int, float] | None = None,
     ) -> TestSample:
         points, colors = np.asarray(points, np.float64), np.asarray(colors, np.float32)
@@ -100,21 +152,16 @@ class TestSample:
             int(label),
             float(background),
         )
-        if max_translation is not None and max_rotation is not None:
-            sample.max_translation, sample.max_rotation = float(max_translation), float(max_rotation)
-            mask = crop_mask(
-                sample.points, sample.K, sample.height, sample.width, sample.max_translation, sample.max_rotation
-            )
-            sample.crop_points, sample.crop_colors = sample.points[mask], sample.colors[mask]
+        if bound is not None:
+            mask = bound.mask(sample.points, sample.K, sample.height, sample.width)
+            sample.bound, sample.crop_points, sample.crop_colors = bound, sample.points[mask], sample.colors[mask]
         return sample
 
     def within_bound(self, motions: torch.Tensor) -> torch.Tensor:
         """Which motions (B, 6) the crop is exact for."""
-        if self.crop_points is None:
+        if self.bound is None:
             return torch.zeros(len(motions), dtype=torch.bool)
-        t = torch.linalg.vector_norm(motions[:, :3], dim=1)
-        r = torch.linalg.vector_norm(motions[:, 3:], dim=1)
-        return (t <= self.max_translation) & (r <= self.max_rotation)
+        return self.bound.contains(motions)
 
     def to(self, device: torch.device | str) -> TestSample:
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) and k != "K" else v) for k, v in vars(self).items()}

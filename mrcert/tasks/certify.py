@@ -38,7 +38,13 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
     def certify_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
-        cert = ev.smoothed(sample, cfg).certify(int(t.n0), int(t.n), float(t.alpha), image_generator(cfg.seed, i))
+        smoothed, generator = ev.smoothed(sample, cfg), image_generator(cfg.seed, i)
+        if t.sequential:
+            cert = smoothed.certify_sequential(
+                int(t.n0), int(t.n), float(t.alpha), float(cfg.motion.radius), int(t.look), generator
+            )
+        else:
+            cert = smoothed.certify(int(t.n0), int(t.n), float(t.alpha), generator)
         return {
             "label": sample.label,
             "predict": cert.prediction,
@@ -46,7 +52,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "correct": int(cert.prediction == sample.label),
             "count_a": cert.count_a,
             "n0": int(t.n0),
-            "n": int(t.n),
+            "n": cert.n,
             "p_a_lower": float(cert.p_a_lower),
             "sigma": "+".join(map(repr, dist.sigmas)),
             "axis": dist.name,
@@ -56,4 +62,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     ctx.tracker.log_artifact(log.path)
     df = certify_log.read_log(log.path)
     title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, smoothing {dist.name}"
-    return report(df, float(cfg.motion.radius), float(cfg.motion.radius_step), ctx, title, dist.region())
+    metrics = report(df, float(cfg.motion.radius), float(cfg.motion.radius_step), ctx, title, dist.region())
+    metrics["mean_samples"] = float(df["n"].mean())
+    ctx.tracker.log_metrics({"mean_samples": metrics["mean_samples"]})
+    return metrics
