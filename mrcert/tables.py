@@ -298,9 +298,9 @@ def write(df: pd.DataFrame, stem: Path, caption: str) -> list[Path]:
     """Markdown, LaTeX and CSV of a table; empty cells stay empty."""
     stem.parent.mkdir(parents=True, exist_ok=True)
     flat = df.reset_index()
-    text = flat.map(_fmt) if hasattr(flat, "map") else flat.applymap(_fmt)
+    text = flat.map(format_cell) if hasattr(flat, "map") else flat.applymap(format_cell)
     md = stem.with_suffix(".md")
-    md.write_text(f"**{caption}**\n\n" + _markdown(text) + "\n")
+    md.write_text(f"**{caption}**\n\n" + markdown(text) + "\n")
     tex = stem.with_suffix(".tex")
     tex.write_text(_latex(text, caption))
     csv = stem.with_suffix(".csv")
@@ -308,13 +308,13 @@ def write(df: pd.DataFrame, stem: Path, caption: str) -> list[Path]:
     return [md, tex, csv]
 
 
-def _fmt(v) -> str:
+def format_cell(v) -> str:
     if isinstance(v, float):
         return "" if np.isnan(v) else f"{v:.3f}"
     return "" if v is None else str(v)
 
 
-def _markdown(text: pd.DataFrame) -> str:
+def markdown(text: pd.DataFrame) -> str:
     header = "| " + " | ".join(map(str, text.columns)) + " |"
     rule = "|" + "|".join("---" for _ in text.columns) + "|"
     body = ["| " + " | ".join(row) + " |" for row in text.astype(str).itertuples(index=False, name=None)]

@@ -61,7 +61,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     ctx.tracker.log_metrics(metrics)
     shown = built[t.print][0]
     print(f"\n{built[t.print][1]} ({t.dataset}, profile {t.profile}):\n")
-    print(tables._markdown(shown.reset_index().map(tables._fmt)))
+    print(tables.markdown(shown.reset_index().map(tables.format_cell)))
     print(
         f"\nTables and figure: {out.resolve()}\nMLflow: make ui  (or: mlflow ui --backend-store-uri {cfg.tracking.uri})"
     )
