@@ -10,15 +10,20 @@ import torch
 from PIL import Image
 
 
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    """(C, H, W) float in [0, 1] to (H, W, C) uint8 (grey for C = 1)."""
-    arr = (image.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    """(..., C, H, W) float in [0, 1] to (..., H, W, C) uint8; exact for values that are k/255."""
+    return (images.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).movedim(-3, -1).numpy()
+
+
+def _pil_array(image: torch.Tensor) -> np.ndarray:
+    """One (C, H, W) image as PIL wants it: (H, W, C) uint8, or (H, W) for grey."""
+    arr = to_uint8(image)
     return arr[..., 0] if arr.shape[2] == 1 else arr
 
 
 def save_png(image: torch.Tensor, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(to_uint8(image)).save(path)
+    Image.fromarray(_pil_array(image)).save(path)
     return path
 
 
@@ -47,7 +52,7 @@ def contact_sheet(
             ax.set_xticks([])
             ax.set_yticks([])
             if c < len(images[r]):
-                ax.imshow(to_uint8(images[r][c]), interpolation="nearest")
+                ax.imshow(_pil_array(images[r][c]), interpolation="nearest")
                 ax.set_xlabel(col_labels[r][c], fontsize=7)
             else:
                 ax.axis("off")

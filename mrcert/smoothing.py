@@ -80,6 +80,10 @@ class SmoothingDistribution:
         z = float(norm.ppf(p_a_lower))
         return self.sigmas[0] * z if self.single else z
 
+    def probability_for(self, radius: float) -> float:
+        """The ``pA`` lower bound that :meth:`radius` turns into ``radius`` (inverse of it)."""
+        return float(norm.cdf(radius / self.sigmas[0] if self.single else radius))
+
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """``n`` motions (n, 6) float64 drawn on CPU from ``generator``."""
         noise = torch.randn(n, len(self.axes), generator=generator, dtype=torch.float64)
@@ -235,8 +239,7 @@ class MotionSmoothedClassifier:
 
         c_a = int(np.argmax(self.sample_counts(n0, generator)))
         cs = BetaBinomialCS(alpha)
-        need = float(norm.cdf(radius / (self.distribution.sigmas[0] if self.distribution.single else 1.0)))
-        need = max(need, 0.5)
+        need = max(self.distribution.probability_for(radius), 0.5)
         count_a, t = 0, 0
         while t < n_max:
             m = min(look, n_max - t)

@@ -7,7 +7,6 @@ written as an empty string), never zero. With ``show_paper`` a cell reads ``ours
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -94,118 +93,122 @@ def model_label(arch: str, variant: str, smoothed: bool = True) -> str:
     return f"{'Smoothed ' if smoothed else ''}{variant.capitalize()} {ARCH_NAMES.get(arch, arch)}"
 
 
-Cell = Callable[[Runs, str, str, str], float]
-PaperCell = Callable[[str, str, str], float | None]
+# The paper's values of each measure (who, quantity, K); benign accuracy has no K.
+PAPER = {
+    ("base", "benign", None): paper_results.BASE_BENIGN,
+    ("smoothed", "benign", None): paper_results.SMOOTHED_BENIGN,
+    ("base", "perturbed", 100): paper_results.BASE_PERTURBED_100,
+    ("smoothed", "perturbed", 100): paper_results.SMOOTHED_PERTURBED_100,
+    ("smoothed", "perturbed", 5): paper_results.SMOOTHED_PERTURBED_5,
+}
 
 
-def _paper(table: dict, axis: str, arch: str, variant: str) -> float | None:
+def measure(runs: Runs, who: str, quantity: str, k: int | None, **keys) -> float:
+    """Accuracy of the ``base`` or ``smoothed`` model: ``benign``, or ``perturbed`` by K motions.
+
+    Benign: the base model's from attack runs (of K perturbations when K is given), the
+    smoothed model's from smooth runs; perturbed: from attack runs with K perturbations.
+    """
+    if quantity == "benign" and who == "smoothed":
+        return runs.metric("smoothed_benign_accuracy", ("smooth",), **keys)
+    name = "base_benign_accuracy" if quantity == "benign" else f"{who}_robust_accuracy"
+    return runs.metric(name, ("attack",), k=k, **keys)
+
+
+def paper_value(who: str, quantity: str, k: int | None, axis: str, arch: str, variant: str) -> float | None:
+    table = PAPER.get((who, quantity, None if quantity == "benign" else k), {})
     return table.get((axis, arch, variant))
 
 
 def certified_table(runs: Runs, archs=ARCHS, axes=AXES_ORDER, show_paper: bool = False) -> pd.DataFrame:
     """Table 3: benign, 5-perturbed and certified accuracy of the four smoothed models."""
-    columns: dict[str, tuple[Cell, PaperCell]] = {
-        "Benign Acc": (
-            lambda r, ax, a, v: r.metric("smoothed_benign_accuracy", ("smooth",), arch=a, variant=v, axis=ax),
-            lambda ax, a, v: _paper(paper_results.SMOOTHED_BENIGN, ax, a, v),
-        ),
-        "5-pert Emp. Acc": (
-            lambda r, ax, a, v: r.metric("smoothed_robust_accuracy", ("attack",), arch=a, variant=v, axis=ax, k=5),
-            lambda ax, a, v: _paper(paper_results.SMOOTHED_PERTURBED_5, ax, a, v),
-        ),
-        "Certified Acc": (
-            lambda r, ax, a, v: r.metric("certified_accuracy", CERTIFY_TASKS, arch=a, variant=v, axis=ax),
-            lambda ax, a, v: _paper(paper_results.CERTIFIED, ax, a, v),
-        ),
-    }
-    rows = [(AXIS_NAMES[ax], model_label(a, v), ax, a, v) for ax in axes for a in archs for v in VARIANTS]
-    return _build(runs, rows, columns, show_paper, ["Axis", "Model"])
+    rows = {}
+    for ax in axes:
+        for a in archs:
+            for v in VARIANTS:
+                keys = {"arch": a, "variant": v, "axis": ax}
+                rows[(AXIS_NAMES[ax], model_label(a, v))] = {
+                    "Benign Acc": _cell(
+                        measure(runs, "smoothed", "benign", None, **keys),
+                        paper_value("smoothed", "benign", None, ax, a, v),
+                        show_paper,
+                    ),
+                    "5-pert Emp. Acc": _cell(
+                        measure(runs, "smoothed", "perturbed", 5, **keys),
+                        paper_value("smoothed", "perturbed", 5, ax, a, v),
+                        show_paper,
+                    ),
+                    "Certified Acc": _cell(
+                        runs.metric("certified_accuracy", CERTIFY_TASKS, **keys),
+                        paper_results.CERTIFIED.get((ax, a, v)),
+                        show_paper,
+                    ),
+                }
+    return _frame(rows, ["Axis", "Model"])
 
 
 def base_vs_smoothed_table(
     runs: Runs, variant: str, archs=ARCHS, axes=AXES_ORDER, k: int = 100, show_paper: bool = False
 ) -> pd.DataFrame:
     """Table 1 (augmented) / its appendix twin (vanilla): benign and K-perturbed, base vs smoothed."""
-    out = []
-    for metric, base_name, smooth_name, base_paper, smooth_paper, kk in (
-        ("Benign Accuracy", "base_benign_accuracy", "smoothed_benign_accuracy", paper_results.BASE_BENIGN, None, None),
-        (
-            f"{k}-perturbed Emp. Robust Acc.",
-            "base_robust_accuracy",
-            "smoothed_robust_accuracy",
-            paper_results.BASE_PERTURBED_100 if k == 100 else {},
-            paper_results.SMOOTHED_PERTURBED_100 if k == 100 else {},
-            k,
-        ),
-    ):
-        columns = {}
-        for a in archs:
-            columns[f"{ARCH_NAMES.get(a, a)} Base"] = (
-                lambda r, ax, a_, v, a=a, n=base_name, kk=kk: r.metric(
-                    n, ("attack",), arch=a, variant=v, axis=ax, k=kk
-                ),
-                lambda ax, a_, v, a=a, t=base_paper: _paper(t, ax, a, v),
-            )
-            smooth_tasks = ("smooth",) if smooth_name == "smoothed_benign_accuracy" else ("attack",)
-            smooth_table = paper_results.SMOOTHED_BENIGN if smooth_paper is None else smooth_paper
-            columns[f"{ARCH_NAMES.get(a, a)} Smoothed"] = (
-                lambda r, ax, a_, v, a=a, n=smooth_name, t=smooth_tasks, kk=kk: r.metric(
-                    n, t, arch=a, variant=v, axis=ax, k=kk if t == ("attack",) else None
-                ),
-                lambda ax, a_, v, a=a, t=smooth_table: _paper(t, ax, a, v),
-            )
-        rows = [(AXIS_NAMES[ax], metric, ax, None, variant) for ax in axes]
-        out.append(_build(runs, rows, columns, show_paper, ["Axis", "Metric"]))
-    order = [(AXIS_NAMES[ax], name) for ax in axes for name in ("Benign Accuracy", f"{k}-perturbed Emp. Robust Acc.")]
-    return pd.concat(out).reindex(pd.MultiIndex.from_tuples(order, names=["Axis", "Metric"]))
+    rows = {}
+    for ax in axes:
+        for quantity, label, kk in (
+            ("benign", "Benign Accuracy", None),
+            ("perturbed", f"{k}-perturbed Emp. Robust Acc.", k),
+        ):
+            rows[(AXIS_NAMES[ax], label)] = {
+                f"{ARCH_NAMES.get(a, a)} {who.capitalize()}": _cell(
+                    measure(runs, who, quantity, kk, arch=a, variant=variant, axis=ax),
+                    paper_value(who, quantity, kk, ax, a, variant),
+                    show_paper,
+                )
+                for a in archs
+                for who in ("base", "smoothed")
+            }
+    return _frame(rows, ["Axis", "Metric"])
 
 
 def perturbed_5_vs_100_table(runs: Runs, archs=ARCHS, axes=AXES_ORDER, show_paper: bool = False) -> pd.DataFrame:
     """Appendix: smoothed 5- vs 100-perturbed empirical robust accuracy."""
-    columns = {}
-    for a in archs:
-        for v in VARIANTS:
-            columns[f"{ARCH_NAMES.get(a, a)} {v.capitalize()}"] = (
-                lambda r, ax, k_, v_, a=a, v=v: r.metric(
-                    "smoothed_robust_accuracy", ("attack",), arch=a, variant=v, axis=ax, k=int(k_)
-                ),
-                lambda ax, k_, v_, a=a, v=v: _paper(
-                    paper_results.SMOOTHED_PERTURBED_5 if k_ == "5" else paper_results.SMOOTHED_PERTURBED_100, ax, a, v
-                ),
-            )
-    rows = [(AXIS_NAMES[ax], f"{k}-perturbed", ax, str(k), None) for ax in axes for k in (5, 100)]
-    return _build(runs, rows, columns, show_paper, ["Axis", "Metric"])
+    rows = {}
+    for ax in axes:
+        for k in (5, 100):
+            rows[(AXIS_NAMES[ax], f"{k}-perturbed")] = {
+                f"{ARCH_NAMES.get(a, a)} {v.capitalize()}": _cell(
+                    measure(runs, "smoothed", "perturbed", k, arch=a, variant=v, axis=ax),
+                    paper_value("smoothed", "perturbed", k, ax, a, v),
+                    show_paper,
+                )
+                for a in archs
+                for v in VARIANTS
+            }
+    return _frame(rows, ["Axis", "Metric"])
 
 
 def tabletop_table(
     runs: Runs, arch: str = "resnet18", variant: str = "vanilla", k: int = 10, show_paper: bool = False
 ) -> pd.DataFrame:
-    """The real-robot table: benign and 10-perturbed accuracy, base vs smoothed, six axes."""
+    """The real-robot table: benign and 10-perturbed accuracy, base vs smoothed, six axes.
+
+    The paper reports one benign accuracy for both; ours is the mean over the six axes' runs."""
     axes = ("tx", "ty", "tz", "rx", "ry", "rz")
     data = {}
-    for who, benign_task, benign_metric, robust_metric, idx in (
-        ("Base", "attack", "base_benign_accuracy", "base_robust_accuracy", 0),
-        ("Smoothed", "smooth", "smoothed_benign_accuracy", "smoothed_robust_accuracy", 1),
-    ):
-        benign = [
-            runs.metric(
-                benign_metric,
-                (benign_task,),
-                arch=arch,
-                variant=variant,
-                axis=ax,
-                k=k if benign_task == "attack" else None,
-            )
-            for ax in axes
-        ]
+    for idx, who in enumerate(("base", "smoothed")):
+        benign = [measure(runs, who, "benign", k, arch=arch, variant=variant, axis=ax) for ax in axes]
         ok = [b for b in benign if not np.isnan(b)]
-        row = {"Benign Accuracy": (float(np.mean(ok)) if ok else float("nan"), paper_results.TABLETOP_BENIGN)}
-        for ax in axes:
-            row[AXIS_NAMES[ax]] = (
-                runs.metric(robust_metric, ("attack",), arch=arch, variant=variant, axis=ax, k=k),
-                paper_results.TABLETOP_PERTURBED_10[ax][idx],
+        row = {
+            "Benign Accuracy": _cell(
+                float(np.mean(ok)) if ok else float("nan"), paper_results.TABLETOP_BENIGN, show_paper
             )
-        data[who] = {c: _cell(v, p, show_paper) for c, (v, p) in row.items()}
+        }
+        for ax in axes:
+            row[AXIS_NAMES[ax]] = _cell(
+                measure(runs, who, "perturbed", k, arch=arch, variant=variant, axis=ax),
+                paper_results.TABLETOP_PERTURBED_10[ax][idx],
+                show_paper,
+            )
+        data[who.capitalize()] = row
     df = pd.DataFrame.from_dict(data, orient="index")
     df.index.name = "Model"
     return df
@@ -356,15 +359,9 @@ def _cell(value: float, paper: float | None, show_paper: bool):
     return ours if paper is None else f"{ours} ({paper:.3f})"
 
 
-def _build(
-    runs: Runs, rows, columns: dict[str, tuple[Cell, PaperCell]], show_paper: bool, index_names: list[str]
-) -> pd.DataFrame:
-    data = {}
-    for r0, r1, ax, a, v in rows:
-        data[(r0, r1)] = {
-            name: _cell(get(runs, ax, a, v), paper(ax, a, v), show_paper) for name, (get, paper) in columns.items()
-        }
-    df = pd.DataFrame.from_dict(data, orient="index")
+def _frame(rows: dict[tuple[str, str], dict], index_names: list[str]) -> pd.DataFrame:
+    """Rows keyed by (level 0, level 1), in insertion order, as a two-level indexed frame."""
+    df = pd.DataFrame.from_dict(rows, orient="index")
     df.index = pd.MultiIndex.from_tuples(df.index, names=index_names)
     return df
 

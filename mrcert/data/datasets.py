@@ -26,6 +26,7 @@ from mrcert.data.samples import CropBound, TestSample
 from mrcert.data.synthetic import Split, SyntheticSource
 from mrcert.errors import MrcertError
 from mrcert.geometry import axis_index, matrix_to_motion, motion_to_matrix
+from mrcert.imaging import to_uint8
 from mrcert.projection import camera_points, project
 from mrcert.scenes.scene import intrinsics
 
@@ -72,11 +73,6 @@ class SampleSet(Dataset):
         if not 0 <= i < len(self):
             raise IndexError(f"test sample {i} out of range 0..{len(self) - 1}")
         return self._make(i)
-
-
-def to_uint8(images: torch.Tensor) -> np.ndarray:
-    """(B, C, H, W) in [0, 1] to (B, H, W, C) uint8 (exact for colours that are k/255)."""
-    return (images.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
 
 
 def render_poses(

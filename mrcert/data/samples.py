@@ -163,10 +163,6 @@ class TestSample:
             return torch.zeros(len(motions), dtype=torch.bool)
         return self.bound.contains(motions)
 
-    def to(self, device: torch.device | str) -> TestSample:
-        moved = {k: (v.to(device) if isinstance(v, torch.Tensor) and k != "K" else v) for k, v in vars(self).items()}
-        return TestSample(**moved)
-
     def render(self, motions, backend: Backend = "auto") -> tuple[torch.Tensor, torch.Tensor]:
         """``O(V, alpha)`` for motions (B, 6): images (B, C, H, W) and depth (B, H, W)."""
         motions = torch.as_tensor(motions, dtype=torch.float64, device=self.points.device).reshape(-1, 6)

@@ -11,6 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+
+from mrcert.geometry import rotvec_to_matrix
 
 
 @dataclass
@@ -131,10 +134,7 @@ def torus(major: float, minor: float, density: float, arc: tuple[float, float] =
 
 
 def rotation(axis: str, angle: float) -> np.ndarray:
-    """Rotation matrix about a world axis."""
-    c, s = np.cos(angle), np.sin(angle)
-    return {
-        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
-        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
-        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
-    }[axis]
+    """Rotation matrix about world axis ``"x"``, ``"y"`` or ``"z"`` (SPEC section 1's matrices)."""
+    rotvec = torch.zeros(3, dtype=torch.float64)
+    rotvec["xyz".index(axis)] = angle
+    return rotvec_to_matrix(rotvec).numpy()

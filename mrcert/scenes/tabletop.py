@@ -16,7 +16,6 @@ from mrcert.scenes.textures import finish, noise, rgb
 
 THICKNESS = 0.01
 SHAPE_COLOR = (0.15, 0.35, 0.8)
-ROBOT_DISTANCE = 0.7
 
 
 def _polar(r_of_theta, n: int = 256) -> np.ndarray:
