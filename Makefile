@@ -29,7 +29,7 @@ install: $(STAMP) ## create .venv and install mrcert with its dependencies (idem
 demo: $(STAMP) ## quick pipeline: data, two small models, certify + attack a subset, print the table
 	$(MRCERT) -m experiment=demo task=train
 	$(MRCERT) -m experiment=demo task=certify,smooth,attack
-	$(MRCERT) task=tables task.archs=[small_cnn] task.axes=[tz]
+	$(MRCERT) task=tables task.experiment=demo
 
 reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished work is skipped
 	for e in table3 table1 tabletop; do $(MRCERT) -m experiment=$$e profile=$(PROFILE) task=train || exit 1; done

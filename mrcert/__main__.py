@@ -15,26 +15,45 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from mrcert import config as mrcert_config
+from mrcert.checkpoints import bind_checkpoint
 from mrcert.errors import MrcertError
+from mrcert.identity import RunIdentity, identify
 from mrcert.tasks import TASKS, RunContext
-from mrcert.tracking import fail_parent, finished_run, task_run
+from mrcert.tracking import fail_parent, find_runs, finished_run, task_run
 
 log = logging.getLogger("mrcert")
 
 
+def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
+    """``cfg`` bound to its inputs (the one checkpoint an evaluation uses) and its run identity."""
+    task = TASKS[cfg.task.name]
+    train_run = None
+    if task.identity.needs_model:
+
+        def newest_train_run(key: str) -> str | None:
+            runs = find_runs(cfg.tracking, key, finished=True, task="train")
+            return runs[0].info.run_id if runs else None
+
+        cfg, train_run = bind_checkpoint(cfg, newest_train_run)
+    return cfg, identify(cfg, task.identity, train_run)
+
+
 def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
-    """Validate ``cfg``, then run its task inside an MLflow run writing to ``output_dir``.
+    """Validate ``cfg``, bind its inputs, then run its task inside an MLflow run writing to
+    ``output_dir`` (or return the FINISHED run of the same run key with ``skip_finished``).
 
     Any failure of a job in a multirun marks the sweep's parent run FAILED.
     """
     try:
         mrcert_config.validate(cfg)
-        done = finished_run(cfg)
+        cfg, ident = bind(cfg)
+        task = TASKS[cfg.task.name]
+        done = finished_run(cfg, ident) if task.reusable else None
         if done is not None:
             log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
             return dict(done.data.metrics)
-        func = TASKS[cfg.task.name].load()
-        with task_run(cfg, output_dir) as tracker:
+        func = task.load()
+        with task_run(cfg, output_dir, ident) as tracker:
             result = func(cfg, RunContext(tracker.output_dir, tracker))
     except BaseException:
         fail_parent(cfg)

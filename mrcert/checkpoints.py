@@ -1,22 +1,27 @@
-"""Checkpoints: saving them atomically, and finding the one a task should use.
+"""Checkpoints: saving them atomically, and binding an evaluation to exactly one of them.
 
-``model.checkpoint`` may be a file path or an MLflow artifact URI (``runs:/<run_id>/<path>``);
-when it is null, the latest FINISHED train run with the same dataset, profile, architecture,
-axis and variant is used, and when there is none the error names the command that makes it.
+``model.checkpoint`` may be a file path or an MLflow artifact URI (``runs:/<run_id>/<path>``).
+When it is null, the train config is derived from the evaluation's own config (data, profile,
+model, seed, the recipe in ``train.*``, and the motion for an augmented model), and the
+FINISHED train run with that run key (:mod:`mrcert.identity`) is the model; when there is none,
+the error names the command that trains it. Multirun parent runs have no run key, so they
+never match.
 """
 
 from __future__ import annotations
 
+import copy
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import torch
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
-from torch import nn
 
+from mrcert.config import plain
 from mrcert.errors import MrcertError
-from mrcert.models import build_model, for_inference
+from mrcert.identity import identify
 
 BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
@@ -24,78 +29,103 @@ ARTIFACT_DIR = "checkpoints"
 
 def save(state: dict[str, Any], path: Path) -> None:
     """Write ``state`` so that a crash never leaves a truncated file behind."""
+    import torch
+
     tmp = path.with_name(path.name + ".tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
 
 
+def train_key(cfg: DictConfig) -> str:
+    """The run key of the train run that makes the model ``cfg`` asks for (whatever its task)."""
+    from mrcert.tasks import TASKS
+
+    return identify(plain(cfg) | {"task": {"name": "train"}}, TASKS["train"].identity).key
+
+
 def train_command(cfg: DictConfig) -> str:
-    """The command that trains the model ``cfg`` asks for."""
-    profile = f" profile={cfg.profile.name}" if "profile" in cfg else ""
-    return (
-        f"mrcert task=train data={cfg.data.name}{profile} model={cfg.model.arch} motion={cfg.motion.axis} "
-        f"model.variant={cfg.model.variant}"
-    )
-
-
-def _download(uri: str) -> Path:
-    import mlflow
-
+    """The command that trains the model ``cfg`` asks for: this launch's overrides with the
+    task swapped for ``train`` (from Hydra when launched from the command line)."""
     try:
-        return Path(mlflow.artifacts.download_artifacts(artifact_uri=uri))
-    except Exception as exc:  # unknown run, missing artifact, unreachable store
-        raise MrcertError(f"model.checkpoint={uri!r} cannot be fetched from MLflow: {exc}") from None
+        overrides = list(HydraConfig.get().overrides.task)
+    except ValueError:  # composed outside a launch (the API, tests)
+        profile = f" profile={cfg.profile.name}" if "profile" in cfg else ""
+        return (
+            f"mrcert task=train data={cfg.data.name}{profile} model={cfg.model.arch} motion={cfg.motion.axis} "
+            f"model.variant={cfg.model.variant}"
+        )
+    kept = [o for o in overrides if not o.lstrip("+~").startswith(("task=", "task.", "model.checkpoint"))]
+    return " ".join(["mrcert", "task=train", *kept])
 
 
-def find_checkpoint(cfg: DictConfig) -> Path:
-    """The local checkpoint file for ``cfg.model`` (see the module docstring)."""
+def run_of(ref: str) -> str | None:
+    """The run id of a ``runs:/<run_id>/...`` reference, else None."""
+    return ref[len("runs:/") :].split("/", 1)[0] if ref.startswith("runs:/") else None
+
+
+def bind_checkpoint(cfg: DictConfig, find_train_run: Callable[[str], str | None]) -> tuple[DictConfig, str | None]:
+    """``cfg`` with ``model.checkpoint`` set to the one model it evaluates, and that model's
+    train run id (None for a file given by path).
+
+    A given reference is checked now, before any run exists: a file must exist, a ``runs:/``
+    URI must name a run of the store. A null one is looked up by :func:`train_key` through
+    ``find_train_run`` (key -> run id or None)."""
     ref = cfg.model.get("checkpoint")
     if ref:
         ref = str(ref)
         if ":/" in ref:
+            run_id = run_of(ref)
+            if run_id is None:
+                raise MrcertError(f"model.checkpoint={ref!r} is not allowed: a file path or runs:/<run_id>/<path>")
             from mrcert.tracking import configure
 
-            configure(cfg.tracking)
-            return _download(ref)
+            try:
+                configure(cfg.tracking).MlflowClient().get_run(run_id)
+            except Exception as exc:  # unknown run, unreachable store
+                raise MrcertError(f"model.checkpoint={ref!r} cannot be fetched from MLflow: {exc}") from None
+            return cfg, run_id
         if not Path(ref).is_file():
             raise MrcertError(f"model.checkpoint={ref!r} does not exist; give a file path or runs:/<run_id>/<path>")
-        return Path(ref)
+        bound = copy.deepcopy(cfg)
+        bound.model.checkpoint = os.path.abspath(ref)
+        return bound, None
     if not cfg.tracking.enabled:
         raise MrcertError(
             "model.checkpoint is not set and tracking is off, so no train run can be looked up; "
             "set model.checkpoint=/path/to/best.pt"
         )
-    from mrcert.tracking import configure, run_tags
-
-    mlflow = configure(cfg.tracking)
-    wanted = {k: v for k, v in run_tags(cfg).items() if k != "mrcert.task"} | {"mrcert.task": "train"}
-    if cfg.model.variant == "vanilla":
-        wanted.pop("mrcert.axis", None)  # a vanilla model never saw a motion: any axis's run serves
-    exp = mlflow.MlflowClient().get_experiment_by_name(cfg.tracking.experiment)
-    runs = (
-        []
-        if exp is None
-        else mlflow.search_runs(
-            experiment_ids=[exp.experiment_id],
-            filter_string=" and ".join(
-                [f"tags.`{k}` = '{v}'" for k, v in wanted.items()] + ["attributes.status = 'FINISHED'"]
-            ),
-            order_by=["attributes.start_time DESC"],
-            max_results=1,
-            output_format="list",
-        )
-    )
-    if not runs:
-        described = ", ".join(f"{k.split('.', 1)[1]}={v}" for k, v in sorted(wanted.items()))
+    run_id = find_train_run(train_key(cfg))
+    if run_id is None:
+        axis = f" axis={cfg.motion.axis}" if cfg.model.variant != "vanilla" else ""
         raise MrcertError(
-            f"no finished train run with {described} in {cfg.tracking.uri}; train one with: {train_command(cfg)}"
+            f"no finished train run of model={cfg.model.arch} variant={cfg.model.variant}{axis} with this data, "
+            f"profile, seed and train.* recipe in {cfg.tracking.uri}; train it with: {train_command(cfg)}"
         )
-    return _download(f"runs:/{runs[0].info.run_id}/{ARTIFACT_DIR}/{BEST}")
+    bound = copy.deepcopy(cfg)
+    bound.model.checkpoint = f"runs:/{run_id}/{ARTIFACT_DIR}/{BEST}"
+    return bound, run_id
 
 
-def load_classifier(cfg: DictConfig, num_classes: int, device: torch.device) -> nn.Module:
-    """The trained base classifier of ``cfg.model`` in eval mode on ``device``."""
-    path = find_checkpoint(cfg)
+def local_checkpoint(ref: str) -> Path:
+    """The local file of a bound ``model.checkpoint`` (downloaded from MLflow for a URI)."""
+    if ":/" not in ref:
+        return Path(ref)
+    import mlflow
+
+    try:
+        return Path(mlflow.artifacts.download_artifacts(artifact_uri=ref))
+    except Exception as exc:  # missing artifact, unreachable store
+        raise MrcertError(f"model.checkpoint={ref!r} cannot be fetched from MLflow: {exc}") from None
+
+
+def load_classifier(cfg: DictConfig, num_classes: int, device):
+    """The trained base classifier (``nn.Module``) of the bound ``cfg.model.checkpoint`` in eval
+    mode on ``device``."""
+    import torch
+
+    from mrcert.models import build_model, for_inference
+
+    path = local_checkpoint(str(cfg.model.checkpoint))
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 import secrets
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -83,8 +83,8 @@ RULES: dict[str, Rule] = {
     "k": (_positive_int, "an integer >= 1"),
     "axis": (_axis, f"one of {', '.join(AXES)} (or several joined by '+')"),
     "axes": (
-        lambda v: isinstance(v, list) and len(v) > 0 and all(_axis(a) for a in v),
-        f"a non-empty list of axes from {', '.join(AXES)}",
+        lambda v: v is None or isinstance(v, list) and len(v) > 0 and all(_axis(a) for a in v),
+        f"a non-empty list of axes from {', '.join(AXES)} (or null for all)",
     ),
     "backend": (lambda v: v in ("auto", "numba", "torch"), "one of auto, numba, torch"),
     "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
@@ -96,6 +96,7 @@ RULES: dict[str, Rule] = {
     "voxel": (_positive, "a finite number > 0 (metres)"),
     "variant": (lambda v: v in ("vanilla", "augmented"), "vanilla or augmented"),
     "epochs": (_positive_int, "an integer >= 1"),
+    "val_fraction": (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
     "batch_size": (_positive_int, "an integer >= 1"),
     "eval_batch_size": (_positive_int, "an integer >= 1"),
     "lr": (_positive, "a finite number > 0"),
@@ -174,8 +175,10 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("device", device, "auto, cpu, cuda or cuda:N")
 
 
-def plain(cfg: DictConfig, throw_on_missing: bool = False) -> dict[str, Any]:
+def plain(cfg: DictConfig | Mapping[str, Any], throw_on_missing: bool = False) -> dict[str, Any]:
     """The config resolved into plain dicts and lists, without Hydra's own ``hydra`` node."""
+    if not OmegaConf.is_config(cfg):
+        return {k: v for k, v in dict(cfg).items() if k != "hydra"}
     return {
         key: OmegaConf.to_container(value, resolve=True, throw_on_missing=throw_on_missing)
         if OmegaConf.is_config(value)

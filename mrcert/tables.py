@@ -1,92 +1,129 @@
-"""The paper's tables and figure, built from finished MLflow runs.
+"""The paper's tables and figure, each cell from the runs of exactly one composed config.
 
-Runs are gathered with ``mlflow.search_runs`` into pandas and looked up by their tags (task,
-dataset, profile, architecture, variant, axis; attack K). A cell with no run is empty (NaN,
-written as an empty string), never zero. With ``show_paper`` a cell reads ``ours (paper)``.
+A table's rows come from an experiment config's sweep (``hydra.sweeper.params`` of
+``conf/experiment/<name>.yaml``: its axes, models and variants), its columns from measures
+(task, metric and the overrides that fix the measure, e.g. ``attack.k=5``). A cell is the
+config ``experiment=<name> profile=<p> task=<task> <sweep values> <measure overrides>``; its
+value comes from the runs of that config's cell key (:mod:`mrcert.cells`) or it stays empty
+(NaN, written as an empty string), never zero. Every table is written with the runs that
+filled each cell (``<table>_sources.csv``/``.md``: run ids and MLflow links). With
+``show_paper`` a cell reads ``ours (paper)``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from hydra.core.override_parser.overrides_parser import OverridesParser
 
 from mrcert import certify_log, paper_results
-from mrcert.paper_results import ARCHS, AXES_ORDER, VARIANTS
+from mrcert.cells import Cell, RunIndex, compose_config
 
 ARCH_NAMES = {"resnet18": "ResNet-18", "resnet50": "ResNet-50", "small_cnn": "SmallCNN"}
 AXIS_NAMES = {"tz": "Tz", "tx": "Tx", "ty": "Ty", "rz": "Rz", "rx": "Rx", "ry": "Ry"}
+AXES_ORDER = paper_results.AXES_ORDER
+
+
+@dataclass(frozen=True)
+class Measure:
+    """What a column shows: a metric of a task's runs, with the overrides that define it."""
+
+    task: str
+    metric: str
+    overrides: tuple[str, ...] = ()
+
+
+SMOOTHED_BENIGN = Measure("smooth", "smoothed_benign_accuracy")
+CERTIFIED = Measure("certify", "certified_accuracy")
+
+
+def base_benign(k: int) -> Measure:
+    return Measure("attack", "base_benign_accuracy", (f"attack.k={k}",))
+
+
+def robust(who: str, k: int) -> Measure:
+    return Measure("attack", f"{who}_robust_accuracy", (f"attack.k={k}",))
+
+
+def sweep_combos(experiment: str) -> list[tuple[str, ...]]:
+    """Every job of an experiment's sweep as its overrides, in the sweeper's order."""
+    params = compose_config([f"experiment={experiment}"]).hydra.sweeper.params or {}
+    parsed = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()])
+    axes = [
+        [f"{o.key_or_group}={v}" for v in o.sweep_string_iterator()]
+        if o.is_sweep_override()
+        else [f"{o.key_or_group}={o.get_value_element_as_str()}"]
+        for o in parsed
+    ]
+    return list(itertools.product(*axes))
 
 
 @dataclass
-class Runs:
-    """Finished runs of one experiment, filtered by dataset and profile."""
+class Source:
+    """Where the tables take their cells from, and the record of which runs filled them.
 
-    df: pd.DataFrame
+    ``experiment``: build every table from this experiment (e.g. ``demo``) instead of each
+    table's own; ``overrides``: extra overrides for every cell (e.g. ``seed=1`` when the
+    experiment ran with it); ``archs`` / ``axes``: only these rows; ``certify_task``:
+    ``import`` to take certification cells from imported logs instead of certify runs."""
 
-    @classmethod
-    def gather(cls, experiment: str, dataset: str | None = None, profile: str | None = None) -> Runs:
-        import mlflow
+    index: RunIndex
+    profile: str
+    experiment: str | None = None
+    overrides: tuple[str, ...] = ()
+    archs: tuple[str, ...] | None = None
+    axes: tuple[str, ...] | None = None
+    certify_task: str = "certify"
+    link: str = "{run_id}"
+    provenance: list[dict] = field(default_factory=list)
 
-        exp = mlflow.MlflowClient().get_experiment_by_name(experiment)
-        if exp is None:
-            return cls(pd.DataFrame())
-        df = mlflow.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'")
-        if len(df) and dataset:
-            df = df[df.get("tags.mrcert.dataset") == dataset]
-        if len(df) and profile and "tags.mrcert.profile" in df:
-            # Imported logs carry the profile their metadata names.
-            df = df[df["tags.mrcert.profile"].fillna(profile) == profile]
-        return cls(df.sort_values("start_time", ascending=False) if len(df) else df)
+    def experiment_for(self, own: str) -> str:
+        return self.experiment or own
 
-    def find(
-        self,
-        tasks: tuple[str, ...],
-        arch: str | None = None,
-        variant: str | None = None,
-        axis: str | None = None,
-        k: int | None = None,
-        sigma: float | None = None,
-    ) -> pd.Series | None:
-        """The latest finished run matching every given key."""
-        df = self.df
-        if not len(df):
-            return None
-        mask = df["tags.mrcert.task"].isin(tasks)
-        for col, value in (("tags.mrcert.model", arch), ("tags.mrcert.variant", variant), ("tags.mrcert.axis", axis)):
-            if value is not None:
-                mask &= df.get(col) == value
-        if k is not None:
-            mask &= pd.to_numeric(df.get("metrics.k"), errors="coerce") == k
-        if sigma is not None:
-            mask &= np.isclose(pd.to_numeric(df.get("params.motion.sigma"), errors="coerce"), sigma)
-        hits = df[mask]
-        return None if hits.empty else hits.iloc[0]
+    def cell(self, experiment: str, combo: tuple[str, ...], measure: Measure) -> Cell:
+        task = self.certify_task if measure.task == "certify" else measure.task
+        fixed = {o.split("=", 1)[0] for o in (*measure.overrides, *self.overrides)}
+        combo = tuple(c for c in combo if c.split("=", 1)[0] not in fixed)
+        return self.index.cell(
+            (f"experiment={experiment}", f"profile={self.profile}", f"task={task}", *combo, *measure.overrides)
+            + self.overrides
+        )
 
-    def metric(self, name: str, tasks: tuple[str, ...], **keys) -> float:
-        run = self.find(tasks, **keys)
-        if run is None:
-            return float("nan")
-        if _is_shard(run):  # one shard's metrics describe its share only: use the merged log
-            log = self.log_of(run)
-            radius, step = float(run["params.motion.radius"]), float(run["params.motion.radius_step"])
-            return certify_log.metrics(log, radius, step, radius)[0].get(name, float("nan"))
-        value = run.get(f"metrics.{name}")
-        return float(value) if value is not None and not pd.isna(value) else float("nan")
+    def rows(self, experiment: str, measure: Measure):
+        """``(combo, cell)`` of the experiment's jobs for ``measure``, filtered by arch and axis."""
+        for combo in sweep_combos(experiment):
+            cell = self.cell(experiment, combo, measure)
+            if self.archs and cell.cfg.model.arch not in self.archs:
+                continue
+            if self.axes and cell.cfg.motion.axis not in self.axes:
+                continue
+            yield combo, cell
 
-    def log_of(self, run: pd.Series) -> pd.DataFrame | None:
-        """A certify run's log; for a shard, the merged logs of the latest run of every shard."""
-        if not _is_shard(run):
-            return _certify_log(run)
-        group = self.df[self.df.get("tags.mrcert.shard_group") == run["tags.mrcert.shard_group"]]
-        latest = group.drop_duplicates("params.task.shard")  # df is sorted newest first
-        logs = [_certify_log(r) for _, r in latest.iterrows()]
-        return None if any(log is None for log in logs) else certify_log.concat_logs(logs)
+    def value(self, table: str, row, column: str, cells: list[Cell], metric: str) -> float:
+        """The metric of ``cells`` (their mean when several), recorded with the runs behind it."""
+        values = [self.index.metric(c, metric) for c in cells]
+        ok = [v for v in values if not np.isnan(v)]
+        value = float(np.mean(ok)) if ok and len(ok) == len(values) else float("nan")
+        runs = [rid for c in cells for rid in c.run_ids]
+        self.provenance.append(
+            {
+                "table": table,
+                "row": " / ".join(map(str, row)) if isinstance(row, tuple) else str(row),
+                "column": column,
+                "value": value,
+                "runs": " ".join(runs),
+                "links": " ".join(self.link.format(run_id=r) for r in runs),
+                "note": "; ".join(sorted({c.note for c in cells if c.note})),
+            }
+        )
+        return value
 
-
-CERTIFY_TASKS = ("certify", "import")
+    def sources(self, table: str) -> pd.DataFrame:
+        return pd.DataFrame([p for p in self.provenance if p["table"] == table])
 
 
 def model_label(arch: str, variant: str, smoothed: bool = True) -> str:
@@ -103,165 +140,160 @@ PAPER = {
 }
 
 
-def measure(runs: Runs, who: str, quantity: str, k: int | None, **keys) -> float:
-    """Accuracy of the ``base`` or ``smoothed`` model: ``benign``, or ``perturbed`` by K motions.
-
-    Benign: the base model's from attack runs (of K perturbations when K is given), the
-    smoothed model's from smooth runs; perturbed: from attack runs with K perturbations.
-    """
-    if quantity == "benign" and who == "smoothed":
-        return runs.metric("smoothed_benign_accuracy", ("smooth",), **keys)
-    name = "base_benign_accuracy" if quantity == "benign" else f"{who}_robust_accuracy"
-    return runs.metric(name, ("attack",), k=k, **keys)
-
-
 def paper_value(who: str, quantity: str, k: int | None, axis: str, arch: str, variant: str) -> float | None:
     table = PAPER.get((who, quantity, None if quantity == "benign" else k), {})
     return table.get((axis, arch, variant))
 
 
-def certified_table(runs: Runs, archs=ARCHS, axes=AXES_ORDER, show_paper: bool = False) -> pd.DataFrame:
-    """Table 3: benign, 5-perturbed and certified accuracy of the four smoothed models."""
+def _axis(cell: Cell) -> str:
+    return str(cell.cfg.motion.axis)
+
+
+def certified_table(src: Source, show_paper: bool = False, name: str = "table3_certified") -> pd.DataFrame:
+    """Table 3: benign, 5-perturbed and certified accuracy of the smoothed models."""
+    exp = src.experiment_for("table3")
+    columns = (
+        ("Benign Acc", SMOOTHED_BENIGN, ("smoothed", "benign", None)),
+        ("5-pert Emp. Acc", robust("smoothed", 5), ("smoothed", "perturbed", 5)),
+        ("Certified Acc", CERTIFIED, None),
+    )
     rows = {}
-    for ax in axes:
-        for a in archs:
-            for v in VARIANTS:
-                keys = {"arch": a, "variant": v, "axis": ax}
-                rows[(AXIS_NAMES[ax], model_label(a, v))] = {
-                    "Benign Acc": _cell(
-                        measure(runs, "smoothed", "benign", None, **keys),
-                        paper_value("smoothed", "benign", None, ax, a, v),
-                        show_paper,
-                    ),
-                    "5-pert Emp. Acc": _cell(
-                        measure(runs, "smoothed", "perturbed", 5, **keys),
-                        paper_value("smoothed", "perturbed", 5, ax, a, v),
-                        show_paper,
-                    ),
-                    "Certified Acc": _cell(
-                        runs.metric("certified_accuracy", CERTIFY_TASKS, **keys),
-                        paper_results.CERTIFIED.get((ax, a, v)),
-                        show_paper,
-                    ),
-                }
+    for combo, first in src.rows(exp, SMOOTHED_BENIGN):
+        ax, a, v = _axis(first), first.cfg.model.arch, first.cfg.model.variant
+        key = (AXIS_NAMES.get(ax, ax), model_label(a, v))
+        rows[key] = {}
+        for label, measure, paper in columns:
+            value = src.value(name, key, label, [src.cell(exp, combo, measure)], measure.metric)
+            reported = paper_value(*paper, ax, a, v) if paper else paper_results.CERTIFIED.get((ax, a, v))
+            rows[key][label] = _cell(value, reported, show_paper)
     return _frame(rows, ["Axis", "Model"])
 
 
 def base_vs_smoothed_table(
-    runs: Runs, variant: str, archs=ARCHS, axes=AXES_ORDER, k: int = 100, show_paper: bool = False
+    src: Source, variant: str, k: int = 100, show_paper: bool = False, name: str = "table1_augmented"
 ) -> pd.DataFrame:
     """Table 1 (augmented) / its appendix twin (vanilla): benign and K-perturbed, base vs smoothed."""
-    rows = {}
-    for ax in axes:
-        for quantity, label, kk in (
-            ("benign", "Benign Accuracy", None),
-            ("perturbed", f"{k}-perturbed Emp. Robust Acc.", k),
-        ):
-            rows[(AXIS_NAMES[ax], label)] = {
-                f"{ARCH_NAMES.get(a, a)} {who.capitalize()}": _cell(
-                    measure(runs, who, quantity, kk, arch=a, variant=variant, axis=ax),
-                    paper_value(who, quantity, kk, ax, a, variant),
-                    show_paper,
-                )
-                for a in archs
-                for who in ("base", "smoothed")
-            }
+    exp = src.experiment_for("table1")
+    measures = {
+        ("benign", "base"): base_benign(k),
+        ("benign", "smoothed"): SMOOTHED_BENIGN,
+        ("perturbed", "base"): robust("base", k),
+        ("perturbed", "smoothed"): robust("smoothed", k),
+    }
+    labels = {"benign": "Benign Accuracy", "perturbed": f"{k}-perturbed Emp. Robust Acc."}
+    rows: dict = {}
+    for combo, first in src.rows(exp, SMOOTHED_BENIGN):
+        if first.cfg.model.variant != variant:
+            continue
+        ax, a = _axis(first), first.cfg.model.arch
+        for quantity in ("benign", "perturbed"):
+            key = (AXIS_NAMES.get(ax, ax), labels[quantity])
+            for who in ("base", "smoothed"):
+                column = f"{ARCH_NAMES.get(a, a)} {who.capitalize()}"
+                measure = measures[(quantity, who)]
+                value = src.value(name, key, column, [src.cell(exp, combo, measure)], measure.metric)
+                reported = paper_value(who, quantity, None if quantity == "benign" else k, ax, a, variant)
+                rows.setdefault(key, {})[column] = _cell(value, reported, show_paper)
     return _frame(rows, ["Axis", "Metric"])
 
 
-def perturbed_5_vs_100_table(runs: Runs, archs=ARCHS, axes=AXES_ORDER, show_paper: bool = False) -> pd.DataFrame:
-    """Appendix: smoothed 5- vs 100-perturbed empirical robust accuracy."""
-    rows = {}
-    for ax in axes:
-        for k in (5, 100):
-            rows[(AXIS_NAMES[ax], f"{k}-perturbed")] = {
-                f"{ARCH_NAMES.get(a, a)} {v.capitalize()}": _cell(
-                    measure(runs, "smoothed", "perturbed", k, arch=a, variant=v, axis=ax),
-                    paper_value("smoothed", "perturbed", k, ax, a, v),
-                    show_paper,
-                )
-                for a in archs
-                for v in VARIANTS
-            }
-    return _frame(rows, ["Axis", "Metric"])
+def perturbed_5_vs_100_table(src: Source, show_paper: bool = False, name: str = "appendix_5_vs_100") -> pd.DataFrame:
+    """Appendix: smoothed 5- vs 100-perturbed empirical robust accuracy (K=5 cells from the
+    Table 3 experiment, K=100 cells from the Table 1 experiment)."""
+    rows: dict = {}
+    for k, own in ((5, "table3"), (100, "table1")):
+        exp = src.experiment_for(own)
+        measure = robust("smoothed", k)
+        for combo, first in src.rows(exp, SMOOTHED_BENIGN):
+            ax, a, v = _axis(first), first.cfg.model.arch, first.cfg.model.variant
+            key = (AXIS_NAMES.get(ax, ax), f"{k}-perturbed")
+            column = f"{ARCH_NAMES.get(a, a)} {v.capitalize()}"
+            value = src.value(name, key, column, [src.cell(exp, combo, measure)], measure.metric)
+            rows.setdefault(key, {})[column] = _cell(
+                value, paper_value("smoothed", "perturbed", k, ax, a, v), show_paper
+            )
+    order = sorted(rows, key=lambda r: list(AXIS_NAMES.values()).index(r[0]) if r[0] in AXIS_NAMES.values() else 99)
+    return _frame({r: rows[r] for r in order}, ["Axis", "Metric"])
 
 
-def tabletop_table(
-    runs: Runs, arch: str = "resnet18", variant: str = "vanilla", k: int = 10, show_paper: bool = False
-) -> pd.DataFrame:
-    """The real-robot table: benign and 10-perturbed accuracy, base vs smoothed, six axes.
+def tabletop_table(src: Source, k: int = 10, show_paper: bool = False, name: str = "tabletop") -> pd.DataFrame:
+    """The real-robot table: benign and K-perturbed accuracy, base vs smoothed, six axes.
 
     The paper reports one benign accuracy for both; ours is the mean over the six axes' runs."""
-    axes = ("tx", "ty", "tz", "rx", "ry", "rz")
+    exp = src.experiment_for("tabletop")
+    jobs = list(src.rows(exp, SMOOTHED_BENIGN))
     data = {}
     for idx, who in enumerate(("base", "smoothed")):
-        benign = [measure(runs, who, "benign", k, arch=arch, variant=variant, axis=ax) for ax in axes]
-        ok = [b for b in benign if not np.isnan(b)]
+        benign = base_benign(k) if who == "base" else SMOOTHED_BENIGN
+        label = who.capitalize()
+        cells = [src.cell(exp, combo, benign) for combo, _ in jobs]
         row = {
             "Benign Accuracy": _cell(
-                float(np.mean(ok)) if ok else float("nan"), paper_results.TABLETOP_BENIGN, show_paper
-            )
-        }
-        for ax in axes:
-            row[AXIS_NAMES[ax]] = _cell(
-                measure(runs, who, "perturbed", k, arch=arch, variant=variant, axis=ax),
-                paper_results.TABLETOP_PERTURBED_10[ax][idx],
+                src.value(name, label, "Benign Accuracy", cells, benign.metric) if cells else float("nan"),
+                paper_results.TABLETOP_BENIGN,
                 show_paper,
             )
-        data[who.capitalize()] = row
+        }
+        for combo, first in jobs:
+            ax = _axis(first)
+            value = src.value(
+                name, label, AXIS_NAMES.get(ax, ax), [src.cell(exp, combo, robust(who, k))], f"{who}_robust_accuracy"
+            )
+            row[AXIS_NAMES.get(ax, ax)] = _cell(
+                value, paper_results.TABLETOP_PERTURBED_10.get(ax, (None, None))[idx], show_paper
+            )
+        data[label] = row
     df = pd.DataFrame.from_dict(data, orient="index")
     df.index.name = "Model"
     return df
 
 
-def sweep_table(runs: Runs, parent: str | None = None) -> pd.DataFrame:
-    """Certified accuracy against sigma (rows) and radius (columns) for each axis.
-
-    From the children of ``parent`` (a sweep's parent run id) when given, else from every
-    finished certify run. Radii are each axis's grid ``k * radius_step``.
-    """
-    df = runs.df
-    if not len(df):
-        return pd.DataFrame()
-    df = df[df["tags.mrcert.task"].isin(CERTIFY_TASKS)]
+def sweep_table(src: Source, parent: str | None = None, name: str = "sweep") -> pd.DataFrame:
+    """Certified accuracy against sigma (rows) and radius (columns, each axis's grid
+    ``k * radius_step``): from the sweep experiment's certify cells, or, with ``parent`` (a
+    sweep's parent run id), from that sweep's children."""
     if parent:
-        df = df[df.get("tags.mlflow.parentRunId") == parent]
+        cells = src.index.children(parent)
+    else:
+        exp = src.experiment_for("sweep")
+        cells = [cell for _, cell in src.rows(exp, CERTIFIED)]
     rows = []
-    for _, run in df.iterrows():
-        log = runs.log_of(run)
+    for cell in cells:
+        log = src.index.log(cell)
+        cfg = cell.cfg
+        sigma = float(cfg.task.sigma if cfg.task.name == "import" else cfg.motion.sigma)
+        step = float(cfg.task.radius_step if cfg.task.name == "import" else cfg.motion.radius_step)
+        model = model_label(str(cfg.model.arch), str(cfg.model.variant), smoothed=False)
+        key = (str(cfg.motion.axis), sigma, model)
+        src.value(name, key, "all radii", [cell], "certified_accuracy")
         if log is None:
             continue
-        step = float(run.get("params.motion.radius_step", run.get("params.task.radius_step", "nan")))
-        sigma = float(run.get("params.motion.sigma", run.get("params.task.sigma", "nan")))
         grid = certify_log.radius_grid(step, 4 * sigma)
         for r in grid[:: max(1, len(grid) // 8)]:
             rows.append(
                 {
-                    "Axis": run["tags.mrcert.axis"],
+                    "Axis": key[0],
                     "sigma": sigma,
+                    "Model": model,
                     "radius": float(r),
                     "Certified Acc": certify_log.certified_accuracy(log, float(r)),
-                    "start": run["start_time"],
                 }
             )
     if not rows:
         return pd.DataFrame()
-    long = pd.DataFrame(rows).sort_values("start", ascending=False).drop_duplicates(["Axis", "sigma", "radius"])
-    wide = long.pivot_table(index=["Axis", "sigma"], columns="radius", values="Certified Acc")
+    wide = pd.DataFrame(rows).pivot_table(index=["Axis", "sigma", "Model"], columns="radius", values="Certified Acc")
     wide.columns = [f"r={c:.4g}" for c in wide.columns]
     return wide
 
 
-def curves(runs: Runs, archs=ARCHS, axes=AXES_ORDER) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Per axis, per model: the exact step function (radii, certified accuracy) of its certify log."""
+def curves(src: Source) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Per axis, per model: the exact step function (radii, certified accuracy) of its certify cell."""
     out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-    for ax in axes:
-        for a in archs:
-            for v in VARIANTS:
-                run = runs.find(CERTIFY_TASKS, arch=a, variant=v, axis=ax)
-                log = None if run is None else runs.log_of(run)
-                if log is not None:
-                    out.setdefault(ax, {})[model_label(a, v)] = certify_log.curve(log)
+    for _, cell in src.rows(src.experiment_for("table3"), CERTIFIED):
+        log = src.index.log(cell)
+        if log is not None:
+            label = model_label(str(cell.cfg.model.arch), str(cell.cfg.model.variant))
+            out.setdefault(_axis(cell), {})[label] = certify_log.curve(log)
     return out
 
 
@@ -364,24 +396,3 @@ def _frame(rows: dict[tuple[str, str], dict], index_names: list[str]) -> pd.Data
     df = pd.DataFrame.from_dict(rows, orient="index")
     df.index = pd.MultiIndex.from_tuples(df.index, names=index_names)
     return df
-
-
-def _is_shard(run: pd.Series) -> bool:
-    return isinstance(run.get("tags.mrcert.shard_group"), str)
-
-
-def _certify_log(run: pd.Series) -> pd.DataFrame | None:
-    """The certify log of a run: from its output folder, else downloaded from its artifacts."""
-    local = Path(str(run.get("tags.mrcert.output_dir", ""))) / "certify.tsv"
-    if local.is_file():
-        return certify_log.read_log(local)
-    import mlflow
-
-    for name in ("certify.tsv", Path(str(run.get("params.task.path", "x"))).name):
-        try:
-            return certify_log.read_log(
-                Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"], artifact_path=name))
-            )
-        except Exception:  # noqa: BLE001 - a run without that artifact: try the next name
-            continue
-    return None

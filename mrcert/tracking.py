@@ -7,10 +7,11 @@ file in the sweep directory -- never by jobs racing to create them (SPEC section
 
 from __future__ import annotations
 
-import hashlib
+import fcntl
 import json
 import logging
 import os
+import socket
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -22,7 +23,10 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from mrcert import identity
+from mrcert.config import plain
 from mrcert.errors import MrcertError
+from mrcert.identity import RunIdentity
 
 log = logging.getLogger(__name__)
 
@@ -30,20 +34,9 @@ PARENT_FILE = "mlflow_parent.json"
 MAX_PARAM_CHARS = 6000
 
 
-def flatten(data: Any, prefix: str = "") -> dict[str, str]:
+def flatten(data: Any) -> dict[str, str]:
     """Nested dicts and lists as ``{"a.b.0": "value"}`` strings, for MLflow params."""
-    if isinstance(data, dict):
-        items = data.items()
-    elif isinstance(data, list):
-        items = enumerate(data)
-    else:
-        return {prefix: str(data)[:MAX_PARAM_CHARS]}
-    out: dict[str, str] = {}
-    for key, value in items:
-        out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
-    if not out and prefix:  # an empty dict or list still records that it was empty
-        out[prefix] = str(data)
-    return out
+    return {k: str(v)[:MAX_PARAM_CHARS] for k, v in identity.flatten(data).items()}
 
 
 def configure(tracking: DictConfig):
@@ -97,31 +90,6 @@ def run_tags(cfg: DictConfig) -> dict[str, str]:
     return {k: str(v) for k, v in tags.items() if v is not None}
 
 
-VOLATILE = ("task.resume",)
-"""Keys that change how a run starts but not what it computes: not params, not in the config key."""
-
-
-def config_key(cfg: DictConfig) -> str:
-    """Hash of what a run computes: the config keys its task uses (all but tracking, paths and
-    device when it does not say), without volatile keys. A vanilla model's key ignores the
-    motion axis, which it never sees."""
-    from mrcert.config import plain
-    from mrcert.tasks import TASKS
-
-    uses = TASKS[cfg.task.name].uses
-    if cfg.task.name == "train" and OmegaConf.select(cfg, "model.variant") == "vanilla":
-        uses = tuple(u for u in uses if u != "motion")
-    data = {
-        k: v
-        for k, v in flatten(plain(cfg)).items()
-        if k not in VOLATILE
-        and not k.startswith(("tracking.", "paths.", "model.checkpoint"))
-        and k != "device"
-        and (uses is None or k.split(".", 1)[0] in uses)
-    }
-    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
-
-
 @dataclass
 class Tracker:
     """What a task logs through (does nothing when tracking is off), and where its files live."""
@@ -170,44 +138,105 @@ def fail_parent(cfg: DictConfig) -> None:
         configure(cfg.tracking).MlflowClient().set_terminated(info["run_id"], "FAILED")
 
 
-def shard_group(cfg: DictConfig) -> str:
-    """The config key shared by every shard of one sharded job (``task.shard`` set to 0)."""
-    whole = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
-    whole.task.shard = 0
-    return config_key(whole)
-
-
-def same_config_run(cfg: DictConfig, experiment_id: str, finished: bool):
-    """The latest FINISHED (or, with ``finished=False``, not finished) run of this config."""
-    import mlflow
-
-    status = "=" if finished else "!="
+def find_runs(tracking: DictConfig, key: str, finished: bool, task: str | None = None) -> list:
+    """Runs whose run key is ``key``, newest first: FINISHED ones, or (``finished=False``)
+    interrupted ones (RUNNING or KILLED; never FAILED, which ended on an error)."""
+    mlflow = configure(tracking)
+    exp = mlflow.MlflowClient().get_experiment_by_name(tracking.experiment)
+    if exp is None:
+        return []
+    status = "= 'FINISHED'" if finished else "!= 'FINISHED'"
+    where = [f"tags.`mrcert.key` = '{key}'", f"attributes.status {status}"]
+    if task is not None:
+        where.append(f"tags.`mrcert.task` = '{task}'")
     runs = mlflow.search_runs(
-        experiment_ids=[experiment_id],
-        filter_string=f"tags.`mrcert.config_key` = '{config_key(cfg)}' and attributes.status {status} 'FINISHED'",
+        experiment_ids=[exp.experiment_id],
+        filter_string=" and ".join(where),
         order_by=["attributes.start_time DESC"],
-        max_results=1,
         output_format="list",
     )
+    return runs if finished else [r for r in runs if r.info.status in ("RUNNING", "KILLED")]
+
+
+def finished_run(cfg: DictConfig, ident: RunIdentity):
+    """A FINISHED run with this run key, when ``skip_finished`` is on (reproductions), else None."""
+    if not (cfg.get("skip_finished") and cfg.tracking.enabled):
+        return None
+    runs = find_runs(cfg.tracking, ident.key, finished=True)
     return runs[0] if runs else None
 
 
-def finished_run(cfg: DictConfig):
-    """A FINISHED run with this config, when ``skip_finished`` is on (reproductions), else None."""
-    if not (cfg.get("skip_finished") and cfg.tracking.enabled):
-        return None
-    return same_config_run(cfg, ensure_experiment(cfg.tracking), finished=True)
+class RunLock:
+    """An exclusive lock on a run's output folder, held by the process writing the run.
+
+    ``flock`` locks die with their process, so a killed run's lock is free and a live one's
+    is not: a second process never resumes (and writes into) a run that is still being written.
+    """
+
+    NAME = ".mrcert.lock"
+
+    def __init__(self, folder: Path):
+        self.path = Path(folder) / self.NAME
+        self._file = None
+
+    def acquire(self) -> bool:
+        """Take the lock; False (and nothing held) when another live process holds it."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        f = open(self.path, "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            return False
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        f.flush()
+        self._file = f
+        return True
+
+    def holder(self) -> str:
+        try:
+            return self.path.read_text().strip() or "unknown"
+        except OSError:
+            return "unknown"
+
+    def release(self) -> None:
+        if self._file is not None:
+            fcntl.flock(self._file, fcntl.LOCK_UN)
+            self._file.close()
+            self._file = None
+
+
+def _resumable(cfg: DictConfig, ident: RunIdentity):
+    """The newest interrupted run of this run key with its lock taken, or None.
+
+    A run whose lock a live process holds is refused with an error naming it."""
+    if not cfg.task.get("resume"):
+        return None, None
+    for run in find_runs(cfg.tracking, ident.key, finished=False)[:1]:
+        folder = Path(run.data.tags["mrcert.output_dir"])
+        lock = RunLock(folder)
+        if not lock.acquire():
+            raise MrcertError(
+                f"run {run.info.run_id} with this config is still being written by a live process "
+                f"({lock.holder()}, {folder}); wait for it to finish, or stop it and rerun to resume it"
+            )
+        return run, lock
+    return None, None
 
 
 @contextmanager
-def task_run(cfg: DictConfig, output_dir: Path) -> Iterator[Tracker]:
-    """An MLflow run around one task: params, tags and the resolved config on entry,
-    status FINISHED or FAILED on exit; a child of the sweep's parent run in a multirun.
+def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[Tracker]:
+    """An MLflow run around one task: params, tags (the run and cell keys, the model used) and
+    the resolved config on entry, status FINISHED, FAILED (an error) or KILLED (interrupted)
+    on exit; a child of the sweep's parent run in a multirun.
 
-    With ``task.resume=true`` the latest unfinished run of the same config is reopened and
-    the task continues in that run's output directory.
+    With ``task.resume=true`` the newest interrupted run (RUNNING or KILLED, and no live
+    process holding it) of the same run key is reopened and the task continues in that run's
+    output directory.
     """
-    from mrcert.config import plain, to_yaml
+    from mrcert.config import to_yaml
 
     output_dir.mkdir(parents=True, exist_ok=True)
     resolved = output_dir / "resolved_config.yaml"
@@ -219,27 +248,33 @@ def task_run(cfg: DictConfig, output_dir: Path) -> Iterator[Tracker]:
     parent_id = info.get("run_id")
     mlflow = configure(cfg.tracking)
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
-    previous = same_config_run(cfg, experiment_id, finished=False) if cfg.task.get("resume") else None
+    previous, lock = _resumable(cfg, ident)
     if previous is not None:
         output_dir = Path(previous.data.tags["mrcert.output_dir"])
         log.info("resuming MLflow run %s from %s", previous.info.run_id, output_dir)
         run_ctx = mlflow.start_run(run_id=previous.info.run_id)
     else:
-        tags = run_tags(cfg) | {"mrcert.output_dir": str(output_dir.resolve()), "mrcert.config_key": config_key(cfg)}
-        if int(OmegaConf.select(cfg, "task.num_shards", default=1) or 1) > 1:
-            tags["mrcert.shard_group"] = shard_group(cfg)
+        lock = RunLock(output_dir)
+        if not lock.acquire():
+            raise MrcertError(f"the run folder {output_dir} is held by another process ({lock.holder()})")
+        tags = run_tags(cfg) | ident.tags() | {"mrcert.output_dir": str(output_dir.resolve())}
         run_ctx = mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags)
-    with run_ctx as run:
-        if previous is None:
-            params = {k: v for k, v in flatten(plain(cfg)).items() if k not in VOLATILE}
-            mlflow.log_params(params)
-            mlflow.log_artifact(str(resolved))
-        log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
-        try:
-            yield Tracker(output_dir, run.info.run_id, resumed=previous is not None)
-        except BaseException:
-            mlflow.end_run("FAILED")
-            raise
+    try:
+        with run_ctx as run:
+            if previous is None:
+                mlflow.log_params(flatten(plain(cfg)) | ident.params())
+                mlflow.log_artifact(str(resolved))
+            log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
+            try:
+                yield Tracker(output_dir, run.info.run_id, resumed=previous is not None)
+            except KeyboardInterrupt:
+                mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
+                raise
+            except BaseException:
+                mlflow.end_run("FAILED")
+                raise
+    finally:
+        lock.release()
 
 
 class MultirunParentCallback(Callback):

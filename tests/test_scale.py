@@ -132,7 +132,7 @@ def test_sharded_certification_merges_into_one_table_cell(tmp_path):
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             return compose("config", overrides=[*TINY, *overrides, f"paths.outputs={tmp_path}"])
 
-    run_task(cfg(["task=train", "task.epochs=1", "task.batch_size=8"]), tmp_path / "runs" / "train")
+    run_task(cfg(["task=train", "train.epochs=1", "train.batch_size=8"]), tmp_path / "runs" / "train")
     certify = ["task=certify", "task.n0=8", "task.n=40", "task.max=6", "task.batch_size=50"]
     for shard in range(3):
         run_task(cfg([*certify, f"task.shard={shard}", "task.num_shards=3"]), tmp_path / "runs" / f"shard{shard}")

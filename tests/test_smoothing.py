@@ -38,7 +38,7 @@ def trained(tmp_path_factory):
     """A store with one finished tiny train run (the classifier the tasks look up)."""
     outputs = tmp_path_factory.mktemp("store")
     run_task(
-        tiny_cfg(["task=train", "task.epochs=2", "task.lr=0.05", "task.batch_size=8"], outputs),
+        tiny_cfg(["task=train", "train.epochs=2", "train.lr=0.05", "train.batch_size=8"], outputs),
         outputs / "runs" / "train",
     )
     return outputs

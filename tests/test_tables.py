@@ -1,4 +1,9 @@
-"""Tables and figure from a small store of real tiny runs and imported logs."""
+"""Tables and figure: each cell from exactly the runs of its composed config, never another's.
+
+The store holds real tiny runs of the demo experiment (small CNNs, vanilla and augmented on
+tz) made with the tiny data settings; the tables are built from the demo experiment with the
+same settings as every cell's overrides.
+"""
 
 from pathlib import Path
 
@@ -9,11 +14,13 @@ import pytest
 
 from mrcert import tables
 from mrcert.__main__ import run_task
+from mrcert.cells import RunIndex
 from mrcert.certify_log import read_log
 from tests.conftest import TINY, compose_cfg, run_cli
 
-ROOT = Path(__file__).resolve().parent.parent
-EVAL = ["task.max=4", "task.batch_size=50"]
+# The tiny data and a short recipe; every cell of the tables gets the same overrides.
+SETTINGS = [*TINY, "train.epochs=2", "train.batch_size=8"]
+DEMO = ["experiment=demo", *SETTINGS]
 # idx label predict radius correct time -- certified accuracy at 0.1: rows 0 and 18 -> 2/5.
 COHEN = (
     "idx\tlabel\tpredict\tradius\tcorrect\ttime\n0\t0\t0\t0.5\t1\t0:00:01\n6\t0\t0\t0.05\t1\t0:00:01\n"
@@ -21,128 +28,159 @@ COHEN = (
 )
 
 
+def run(out: Path, overrides: list[str], name: str) -> dict:
+    return run_task(compose_cfg(overrides, out), out / "runs" / name)
+
+
+def train_overrides(variant: str) -> list[str]:
+    return [*DEMO, "task=train", f"model.variant={variant}"]
+
+
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     out = tmp_path_factory.mktemp("tables")
-    run = lambda overrides, name: run_task(compose_cfg(overrides, out), out / "runs" / name)  # noqa: E731
-    run([*TINY, "task=train", "task.epochs=1", "task.batch_size=8"], "train")
-    run([*TINY, "task=certify", "task.n0=8", "task.n=40", *EVAL], "certify")
-    run([*TINY, "task=smooth", "task.n=20", *EVAL], "smooth")
-    run([*TINY, "task=attack", "attack.k=5", "task.n=20", *EVAL], "attack5")
-    run([*TINY, "task=attack", "attack.k=100", "task.smoothed=false", *EVAL], "attack100")
-    log = out / "cohen.tsv"
-    log.write_text(COHEN)
-    for arch, variant in (("resnet18", "vanilla"), ("resnet50", "augmented")):
-        run(
-            [
-                "task=import",
-                f"task.path={log}",
-                "task.dataset=metaroom_synth",
-                f"task.arch={arch}",
-                f"task.variant={variant}",
-                "task.profile=quick",
-                "motion=tz",
-            ],
-            f"import-{arch}",
-        )
+    for variant in ("vanilla", "augmented"):
+        run(out, train_overrides(variant), f"train-{variant}")
+    for task in ("certify", "smooth", "attack"):
+        run(out, [*DEMO, f"task={task}", "model.variant=vanilla", "task.batch_size=64"], task)
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
     return out
 
 
-def hand(out: Path, name: str, column: str, value=1) -> float:
-    df = read_log(next((out / "runs" / name).glob("*.tsv")), ["idx"])
+def source(out: Path, **kw) -> tables.Source:
+    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
+    return tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=tuple(SETTINGS), **kw)
+
+
+def hand(out: Path, name: str, file: str, column: str, value=1) -> float:
+    df = read_log(next((out / "runs" / name).glob(file)), ["idx"])
     return float((df[column] == value).mean())
 
 
-def test_certified_table_cells_match_hand_computation(store):
-    runs = tables.Runs.gather("mrcert", "metaroom_synth", "quick")
-    df = tables.certified_table(runs, ("small_cnn", "resnet18", "resnet50"), ("tz", "tx"))
-    small = df.loc[("Tz", "Smoothed Vanilla SmallCNN")]
+def test_cells_hold_exactly_the_runs_of_their_config(store):
+    src = source(store)
+    df = tables.certified_table(src)
+    vanilla = df.loc[("Tz", "Smoothed Vanilla SmallCNN")]
     certify = read_log(store / "runs" / "certify" / "certify.tsv")
-    assert small["Certified Acc"] == pytest.approx(((certify.correct == 1) & (certify.radius >= 0.1)).mean())
-    assert small["Benign Acc"] == pytest.approx(hand(store, "smooth", "correct"))
-    assert small["5-pert Emp. Acc"] == pytest.approx(hand(store, "attack5", "smoothed_robust"))
-    assert df.loc[("Tz", "Smoothed Vanilla ResNet-18"), "Certified Acc"] == pytest.approx(0.4)
-    assert df.loc[("Tz", "Smoothed Augmented ResNet-50"), "Certified Acc"] == pytest.approx(0.4)
-    # Missing runs are empty, never zero.
-    assert np.isnan(df.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])
-    assert df.loc["Tx"].isna().all().all()
+    assert len(certify) == 2  # the demo's every 12th of 18 test images
+    assert vanilla["Certified Acc"] == pytest.approx(((certify.correct == 1) & (certify.radius >= 0.1)).mean())
+    assert vanilla["Benign Acc"] == pytest.approx(hand(store, "smooth", "smooth.tsv", "correct"))
+    assert vanilla["5-pert Emp. Acc"] == pytest.approx(hand(store, "attack", "attack.tsv", "smoothed_robust"))
+    # The augmented model is trained but never evaluated: its cells stay empty, never zero.
+    assert df.loc[("Tz", "Smoothed Augmented SmallCNN")].isna().all()
+    # Each cell names its run.
+    sources = src.sources("table3_certified").set_index(["row", "column"])
+    runs = mlflow.search_runs(search_all_experiments=True, filter_string="tags.`mrcert.task` = 'certify'")
+    assert sources.loc[("Tz / Smoothed Vanilla SmallCNN", "Certified Acc"), "runs"] == runs.iloc[0]["run_id"]
+    assert "no finished run" in sources.loc[("Tz / Smoothed Augmented SmallCNN", "Certified Acc"), "note"]
 
 
-def test_base_vs_smoothed_and_5_vs_100_tables(store):
-    runs = tables.Runs.gather("mrcert", "metaroom_synth", "quick")
-    t1 = tables.base_vs_smoothed_table(runs, "vanilla", ("small_cnn",), ("tz",), k=100)
-    assert list(t1.index) == [("Tz", "Benign Accuracy"), ("Tz", "100-perturbed Emp. Robust Acc.")]
-    assert t1.loc[("Tz", "Benign Accuracy"), "SmallCNN Base"] == pytest.approx(hand(store, "attack100", "base_benign"))
-    assert t1.loc[("Tz", "Benign Accuracy"), "SmallCNN Smoothed"] == pytest.approx(hand(store, "smooth", "correct"))
-    assert t1.loc[("Tz", "100-perturbed Emp. Robust Acc."), "SmallCNN Base"] == pytest.approx(
-        hand(store, "attack100", "base_robust")
+def test_a_smoke_run_or_other_settings_never_change_a_cell(store):
+    before = tables.certified_table(source(store))
+    # A smoke run, another alpha and a sequential run of the same model after the full run.
+    run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.max=1"], "smoke")
+    run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.alpha=0.3"], "alpha")
+    run(store, [*DEMO, "task=smooth", "model.variant=vanilla", "task.max=1"], "smoke-smooth")
+    after_src = source(store)
+    after = tables.certified_table(after_src)
+    pd.testing.assert_frame_equal(after, before)
+    smoke = read_log(store / "runs" / "smoke" / "certify.tsv")
+    assert len(smoke) == 1  # the smoke run exists and differs in size from the full one
+    sources = after_src.sources("table3_certified")
+    full = mlflow.search_runs(
+        search_all_experiments=True, filter_string="tags.`mrcert.task` = 'certify' and params.`task.max` = 'None'"
     )
-    assert np.isnan(t1.loc[("Tz", "100-perturbed Emp. Robust Acc."), "SmallCNN Smoothed"])  # smoothed=false run
-    t5 = tables.perturbed_5_vs_100_table(runs, ("small_cnn",), ("tz",))
-    assert t5.loc[("Tz", "5-perturbed"), "SmallCNN Vanilla"] == pytest.approx(hand(store, "attack5", "smoothed_robust"))
-    assert np.isnan(t5.loc[("Tz", "100-perturbed"), "SmallCNN Vanilla"])
-    robot = tables.tabletop_table(tables.Runs.gather("mrcert", "tabletop_synth", "quick"))
-    assert robot.shape == (2, 7) and robot.isna().all().all()
+    certified = sources[sources.column == "Certified Acc"].set_index("row")["runs"]
+    assert certified["Tz / Smoothed Vanilla SmallCNN"] == full.sort_values("start_time").iloc[0]["run_id"]
+
+
+def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
+    out = tmp_path
+    run(out, train_overrides("vanilla"), "train")
+    shard = ["model.variant=vanilla", "task.num_shards=2", "task.skip=1", "task.max=4"]
+    for task in ("smooth", "attack"):
+        run(out, [*DEMO, f"task={task}", *shard, "task.shard=0"], f"{task}-0")
+    overrides = tuple([*SETTINGS, "task.skip=1", "task.max=4"])
+    src = tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    early = tables.certified_table(src)
+    assert early.loc[("Tz", "Smoothed Vanilla SmallCNN"), ["Benign Acc", "5-pert Emp. Acc"]].isna().all()
+    notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
+    assert notes[("Tz / Smoothed Vanilla SmallCNN", "Benign Acc")] == "shards [1] of task.num_shards=2 not finished"
+    assert notes[("Tz / Smoothed Augmented SmallCNN", "Benign Acc")] == "no finished train run for its model"
+    for task in ("smooth", "attack"):
+        run(out, [*DEMO, f"task={task}", *shard, "task.shard=1"], f"{task}-1")
+    src = tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    df = tables.certified_table(src)
+    smooth = pd.concat([read_log(out / "runs" / f"smooth-{i}" / "smooth.tsv", ["idx"]) for i in (0, 1)])
+    attack = pd.concat([read_log(out / "runs" / f"attack-{i}" / "attack.tsv", ["idx"]) for i in (0, 1)])
+    assert len(smooth) == len(attack) == 4
+    row = df.loc[("Tz", "Smoothed Vanilla SmallCNN")]
+    assert row["Benign Acc"] == pytest.approx(smooth.correct.mean())
+    assert row["5-pert Emp. Acc"] == pytest.approx((attack.smoothed_robust == 1).mean())
+    runs = src.sources("table3_certified").set_index(["row", "column"])["runs"]
+    assert len(runs[("Tz / Smoothed Vanilla SmallCNN", "Benign Acc")].split()) == 2
+
+
+def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, tmp_path):
+    log = tmp_path / "cohen.tsv"
+    log.write_text(COHEN)
+    run(store, ["experiment=demo", "task=import", f"task.path={log}", "model.variant=augmented"], "import")
+    ours = tables.certified_table(source(store))
+    assert np.isnan(ours.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])  # not mixed into ours
+    imported = tables.certified_table(source(store, certify_task="import"))
+    assert imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == pytest.approx(0.4)
+    assert np.isnan(imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Benign Acc"])
+    radii, acc = tables.curves(source(store, certify_task="import"))["tz"]["Smoothed Augmented SmallCNN"]
+    assert radii.tolist() == [0.0, 0.05, 0.2, 0.5] and acc.tolist() == pytest.approx([0.6, 0.6, 0.4, 0.2])
+    other = tmp_path / "other.tsv"
+    other.write_text(COHEN.replace("0.5\t1", "0.05\t1"))
+    run(store, ["experiment=demo", "task=import", f"task.path={other}", "model.variant=augmented"], "import2")
+    src = source(store, certify_task="import")
+    assert np.isnan(tables.certified_table(src).loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])
+    notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
+    assert "ambiguous: 2 different finished runs" in notes[("Tz / Smoothed Augmented SmallCNN", "Certified Acc")]
 
 
 def test_written_files_keep_empty_cells_empty_and_latex_balanced(store, tmp_path):
-    runs = tables.Runs.gather("mrcert", "metaroom_synth", "quick")
-    df = tables.certified_table(runs, ("resnet18",), ("tz", "tx"))
+    src = source(store)
+    df = tables.certified_table(src)
     md, tex, csv = tables.write(df, tmp_path / "t3", "Table 3")
     back = pd.read_csv(csv, keep_default_na=False)
-    assert back.loc[(back.Axis == "Tx"), "Certified Acc"].tolist() == ["", ""]
-    assert "0.000" not in md.read_text() and "0.400" in md.read_text()
+    assert back.loc[back.Model == "Smoothed Augmented SmallCNN", "Certified Acc"].tolist() == [""]
+    assert "nan" not in md.read_text()
     lines = [ln for ln in tex.read_text().splitlines() if ln.endswith(r"\\")]
     columns = len(df.reset_index().columns)
     assert len(lines) == 1 + len(df) and all(ln.count("&") - ln.count(r"\&") == columns - 1 for ln in lines)
-    assert tex.read_text().count(r"\begin{tabular}{" + "l" * columns + "}") == 1
-    shown = tables.certified_table(runs, ("resnet18",), ("tz",), show_paper=True)
-    assert shown.loc[("Tz", "Smoothed Vanilla ResNet-18"), "Certified Acc"] == "0.400 (0.792)"
-    assert shown.loc[("Tz", "Smoothed Augmented ResNet-18"), "Certified Acc"] == " (0.817)"
-
-
-def test_figure_uses_the_exact_step_functions(store, tmp_path):
-    runs = tables.Runs.gather("mrcert", "metaroom_synth", "quick")
-    data = tables.curves(runs, ("resnet18", "resnet50"), ("tz",))
-    radii, acc = data["tz"]["Smoothed Vanilla ResNet-18"]
-    assert radii.tolist() == [0.0, 0.05, 0.2, 0.5] and acc.tolist() == pytest.approx([0.6, 0.6, 0.4, 0.2])
-    png, pdf = tables.plot_curves(data, tmp_path / "fig")
-    assert png.stat().st_size > 10_000 and pdf.read_bytes().startswith(b"%PDF")
+    shown = tables.certified_table(source(store), show_paper=True)
+    assert shown.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == ""  # no paper value for a SmallCNN
 
 
 def test_sweep_table_from_a_parents_children(store):
-    proc = run_cli(
-        [
-            "-m",
-            "task=import",
-            f"task.path={store / 'cohen.tsv'}",
-            "task.dataset=metaroom_synth",
-            "task.profile=quick",
-            "motion=tz",
-            "motion.sigma=0.05,0.1",
-        ],
-        store,
-    )
+    log = store / "cohen-sweep.tsv"
+    log.write_text(COHEN)
+    proc = run_cli(["-m", "task=import", f"task.path={log}", "motion=tz", "motion.sigma=0.05,0.1"], store)
     assert proc.returncode == 0, proc.stderr[-2000:]
     mlflow.set_tracking_uri(f"sqlite:///{store / 'mlflow.db'}")
     (parent,) = mlflow.search_runs(
         search_all_experiments=True, filter_string="tags.`mrcert.multirun` = 'parent'", output_format="list"
     )
-    runs = tables.Runs.gather("mrcert", "metaroom_synth", "quick")
-    sweep = tables.sweep_table(runs, parent.info.run_id)
-    assert list(sweep.index) == [("tz", 0.05), ("tz", 0.1)]
-    assert sweep.loc[("tz", 0.1), "r=0.2"] == pytest.approx(0.4) and sweep.loc[("tz", 0.1), "r=0"] == pytest.approx(0.6)
+    sweep = tables.sweep_table(source(store), parent.info.run_id)
+    assert [idx[:2] for idx in sweep.index] == [("tz", 0.05), ("tz", 0.1)]
+    assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0.2"] == pytest.approx(0.4)
+    assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0"] == pytest.approx(0.6)
 
 
-def test_tables_task_writes_every_table_and_the_figure(store):
+def test_tables_task_writes_every_table_its_sources_and_the_figure(store):
     result = run_task(
-        compose_cfg(["task=tables", "task.archs=[small_cnn,resnet18]", "task.axes=[tz]"], store),
+        compose_cfg(["task=tables", "task.experiment=demo", "task.overrides=[" + ",".join(f"'{o}'" for o in SETTINGS) + "]"], store),
         store / "runs" / "tables",
     )
     out = Path(result["tables"])
     for name in ("table3_certified", "table1_augmented", "appendix_vanilla", "appendix_5_vs_100", "tabletop", "sweep"):
         for suffix in (".md", ".tex", ".csv"):
-            assert (out / f"{name}{suffix}").is_file()
+            assert (out / f"{name}{suffix}").is_file() and (out / f"{name}_sources{suffix}").is_file()
     assert (out / "certified_accuracy_vs_radius.png").is_file() and (out / "certified_accuracy_vs_radius.pdf").is_file()
-    assert result["table3_certified_filled_cells"] == 4  # SmallCNN vanilla: 3 cells; ResNet-18 vanilla: certified
+    assert result["table3_certified_filled_cells"] == 3  # the vanilla model's three cells
+    sources = pd.read_csv(out / "table3_certified_sources.csv", keep_default_na=False)
+    filled = sources[sources.runs != ""]
+    assert len(filled) == 3 and filled.links.str.match(r"http://127\.0\.0\.1:5000/#/experiments/\d+/runs/\w+").all()

@@ -8,16 +8,20 @@ import pytest
 import torch
 
 from mrcert.__main__ import run_task
-from mrcert.checkpoints import find_checkpoint, load_classifier
+from mrcert.__main__ import bind
+from mrcert.checkpoints import load_classifier, local_checkpoint
 from mrcert.data.datasets import Augment, load
+from mrcert.data.holdout import validation_split
 from mrcert.errors import MrcertError
 from mrcert.geometry import matrix_to_motion
 from mrcert.models import build_model
 from mrcert.projection import camera_points, project
+from mrcert.tasks.train import accuracy, as_tensors
 from tests.conftest import TINY, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
-TINY_TRAIN = [*TINY, "task=train", "task.batch_size=8", "task.lr=0.02", "data.protocol.train.per_class=16"]
+RECIPE = [*TINY, "train.batch_size=8", "train.lr=0.02"]
+TINY_TRAIN = [*RECIPE, "task=train"]
 
 
 def train_in_process(overrides, outputs, name):
@@ -31,7 +35,7 @@ def store(outputs):
 
 
 def test_tiny_run_lowers_the_loss_and_tracks_metrics_and_checkpoints(tmp_path):
-    result, _ = train_in_process([*TINY_TRAIN, "task.epochs=4"], tmp_path, "a")
+    result, _ = train_in_process([*TINY_TRAIN, "train.epochs=4"], tmp_path, "a")
     client = store(tmp_path)
     (run,) = client.search_runs([client.get_experiment_by_name("mrcert").experiment_id])
     assert run.info.status == "FINISHED"
@@ -57,7 +61,7 @@ def weights(path: Path) -> dict:
 
 
 def test_killed_run_resumes_to_the_same_weights_in_the_same_mlflow_run(tmp_path):
-    args = [*TINY_TRAIN, "task.epochs=6"]
+    args = [*TINY_TRAIN, "train.epochs=6"]
     full, _ = train_in_process(args, tmp_path / "full", "full")
     reference = weights(Path(full["checkpoint"]).with_name("last.pt"))
 
@@ -78,35 +82,73 @@ def test_killed_run_resumes_to_the_same_weights_in_the_same_mlflow_run(tmp_path)
     assert all(torch.equal(resumed[k], reference[k]) for k in reference)
 
 
+def find_checkpoint(cfg) -> Path:
+    """The checkpoint an evaluation config binds to, as a local file."""
+    bound, _ = bind(cfg)
+    return local_checkpoint(bound.model.checkpoint)
+
+
 def test_checkpoint_lookup_finds_the_matching_run_and_names_the_command_when_none(tmp_path):
-    train_in_process([*TINY_TRAIN, "task.epochs=1"], tmp_path, "vanilla")
-    train_in_process([*TINY_TRAIN, "task.epochs=1", "model.variant=augmented"], tmp_path, "augmented")
+    train_in_process([*TINY_TRAIN, "train.epochs=1"], tmp_path, "vanilla")
+    train_in_process([*TINY_TRAIN, "train.epochs=1", "model.variant=augmented"], tmp_path, "augmented")
+    evaluation = [*RECIPE, "train.epochs=1", "task=certify"]
     for variant in ("vanilla", "augmented"):
-        cfg = compose_cfg([*TINY_TRAIN, f"model.variant={variant}"], tmp_path)
+        cfg = compose_cfg([*evaluation, f"model.variant={variant}"], tmp_path)
         path = find_checkpoint(cfg)
         assert torch.load(path, weights_only=True)["variant"] == variant
-        model = load_classifier(cfg, 3, torch.device("cpu"))
+        model = load_classifier(bind(cfg)[0], 3, torch.device("cpu"))
         assert model(torch.rand(2, 3, 90, 160)).shape == (2, 3)
     # A vanilla model never saw a motion, so the tz run serves rx too; an augmented one does not.
-    rx_vanilla = find_checkpoint(compose_cfg([*TINY_TRAIN, "motion=rx"], tmp_path))
+    rx_vanilla = find_checkpoint(compose_cfg([*evaluation, "motion=rx"], tmp_path))
     assert torch.load(rx_vanilla, weights_only=True)["variant"] == "vanilla"
-    missing = compose_cfg([*TINY_TRAIN, "motion=rx", "model.variant=augmented"], tmp_path)
+    missing = compose_cfg([*evaluation, "motion=rx", "model.variant=augmented"], tmp_path)
     with pytest.raises(
         MrcertError,
-        match="no finished train run.*axis=rx.*mrcert task=train data=metaroom_synth "
-        "profile=quick model=small_cnn motion=rx model.variant=augmented",
+        match="no finished train run of model=small_cnn variant=augmented axis=rx.*mrcert task=train "
+        "data=metaroom_synth profile=quick model=small_cnn motion=rx model.variant=augmented",
     ):
         find_checkpoint(missing)
+    # Another recipe is another model: the one-epoch runs do not stand in for it.
+    with pytest.raises(MrcertError, match="no finished train run"):
+        find_checkpoint(compose_cfg([*evaluation, "train.epochs=2"], tmp_path))
     with pytest.raises(MrcertError, match="cannot be fetched from MLflow"):
         find_checkpoint(
-            compose_cfg([*TINY_TRAIN, "model.checkpoint=runs:/0123456789abcdef/checkpoints/best.pt"], tmp_path)
+            compose_cfg([*evaluation, "model.checkpoint=runs:/0123456789abcdef/checkpoints/best.pt"], tmp_path)
         )
     with pytest.raises(MrcertError, match="does not exist"):
-        find_checkpoint(compose_cfg([*TINY_TRAIN, f"model.checkpoint={tmp_path / 'nope.pt'}"], tmp_path))
-    resnet = [o for o in TINY_TRAIN if not o.startswith("model")] + ["model=resnet18", f"model.checkpoint={path}"]
+        find_checkpoint(compose_cfg([*evaluation, f"model.checkpoint={tmp_path / 'nope.pt'}"], tmp_path))
+    resnet = [o for o in evaluation if not o.startswith("model")] + ["model=resnet18", f"model.checkpoint={path}"]
     wrong = compose_cfg(resnet, tmp_path)
     with pytest.raises(MrcertError, match="holds a small_cnn for 3 classes, but model=resnet18"):
         load_classifier(wrong, 3, torch.device("cpu"))
+
+
+def test_model_selection_uses_held_out_training_poses_never_the_test_poses(tmp_path):
+    result, cfg = train_in_process([*TINY_TRAIN, "train.epochs=3"], tmp_path, "select")
+    best = torch.load(Path(result["checkpoint"]), weights_only=True)
+    bundle = load(cfg.data)
+    train_set = bundle.train()
+    _, val = validation_split(train_set.labels, 0.1, 0)
+    assert best["validation"]["indices"] == val.tolist() and len(val) == 3 * 2  # round(0.1 * 16) per class
+    # The selection images are training poses, none of them a test pose.
+    held_poses, test_poses = bundle.split("train").poses[val], bundle.split("test").poses
+    assert not any(np.allclose(h, t) for h in held_poses for t in test_poses)
+    model = build_model(cfg.model, 3)
+    model.load_state_dict(best["model"])
+    images, labels = as_tensors(train_set)
+    assert accuracy(model, images[val], labels[val], "cpu", 64) == best["val_acc"] == result["best_val_acc"]
+    test_images, test_labels = as_tensors(bundle.test())
+    assert accuracy(model, test_images, test_labels, "cpu", 64) == result["test_acc"]
+    client = store(tmp_path)
+    (run,) = client.search_runs([client.get_experiment_by_name("mrcert").experiment_id])
+    assert run.data.metrics["train_images"] == 48 - 6 and run.data.metrics["val_images"] == 6
+    history = [m.value for m in client.get_metric_history(run.info.run_id, "val_acc")]
+    assert len(history) == 3 and best["val_acc"] == max(history) and history[best["epoch"]] == max(history)
+    split = validation_split(np.repeat(np.arange(4), 10), 0.25, seed=5)
+    again = validation_split(np.repeat(np.arange(4), 10), 0.25, seed=5)
+    assert all((a == b).all() for a, b in zip(split, again))  # seeded
+    assert [int((np.repeat(np.arange(4), 10)[split[1]] == c).sum()) for c in range(4)] == [2, 2, 2, 2]  # per class
+    assert not set(split[0]) & set(split[1]) and len(split[0]) + len(split[1]) == 40
 
 
 def test_augmentation_changes_images_and_equals_the_projection_at_the_drawn_motions(tmp_path):

@@ -37,6 +37,24 @@ COLUMNS = [
 ]
 
 
+LOG = "attack.tsv"
+
+
+def summarize(df, cfg: DictConfig) -> dict[str, float]:
+    """Benign and K-perturbed accuracies of a (possibly merged) attack log."""
+    metrics = {
+        "base_benign_accuracy": float(df["base_benign"].mean()),
+        "base_robust_accuracy": float(df["base_robust"].mean()),
+        "k": float(cfg.attack.k),
+        "attack_radius": float(cfg.attack.radius),
+        "num_images": float(len(df)),
+        "seconds_per_image": float(df["seconds"].mean()),
+    }
+    if cfg.task.smoothed:
+        metrics["smoothed_robust_accuracy"] = float((df["smoothed_robust"] == 1).mean())
+    return metrics
+
+
 def attack_motions(attack: DictConfig, axis: str, seed: int, index: int) -> torch.Tensor:
     """The K motions (K, 6) of the attack on one test image."""
     k, r = int(attack.k), float(attack.radius)
@@ -58,7 +76,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if not ev.distribution.single:
         raise MrcertError(f"task=attack perturbs one axis; motion={ev.distribution.name} smooths several")
     axis = ev.distribution.axes[0]
-    log = ResultLog(ctx.output_dir / "attack.tsv", COLUMNS)
+    log = ResultLog(ctx.output_dir / LOG, COLUMNS)
 
     @torch.inference_mode()
     def attack_one(i: int) -> dict[str, Any]:
@@ -95,16 +113,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         return row
 
     run_per_image(log, ev.indices, attack_one, f"attack {cfg.attack.name} k={cfg.attack.k}")
-    df = read_log(log.path, COLUMNS)
-    metrics = {
-        "base_benign_accuracy": float(df["base_benign"].mean()),
-        "base_robust_accuracy": float(df["base_robust"].mean()),
-        "k": float(cfg.attack.k),
-        "attack_radius": float(cfg.attack.radius),
-        "num_images": float(len(df)),
-        "seconds_per_image": float(df["seconds"].mean()),
-    }
-    if t.smoothed:
-        metrics["smoothed_robust_accuracy"] = float((df["smoothed_robust"] == 1).mean())
+    metrics = summarize(read_log(log.path, COLUMNS), cfg)
     log_outputs(ctx, metrics, log.path)
     return metrics

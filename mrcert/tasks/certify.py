@@ -30,11 +30,24 @@ def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, regi
     return metrics
 
 
+LOG = "certify.tsv"
+
+
+def summarize(df, cfg: DictConfig) -> dict[str, float]:
+    """The headline metrics of a (possibly merged) certify log: certified accuracy at
+    ``motion.radius`` and the rest of :func:`mrcert.certify_log.metrics`."""
+    radius = float(cfg.motion.radius)
+    metrics = certify_log.metrics(df, radius, float(cfg.motion.radius_step), radius)[0]
+    if "n" in df.columns:
+        metrics["mean_samples"] = float(df["n"].mean())
+    return metrics
+
+
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
     dist = ev.distribution
-    log = certify_log.ResultLog(ctx.output_dir / "certify.tsv")
+    log = certify_log.ResultLog(ctx.output_dir / LOG)
 
     def certify_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]

@@ -1,22 +1,36 @@
 """``task=import``: a certify log computed elsewhere (Cohen / paper-authors format, with or
-without our extra columns) recorded as an MLflow run with the same metrics as ``certify``."""
+without our extra columns) recorded as an MLflow run with the same metrics as ``certify``.
+
+The run is filed under the log's metadata (``task.dataset``, ``task.arch``, ``task.variant``,
+``task.profile``, ``task.axis``, ``task.sigma``; by default those of the composed data, model,
+profile and motion), and the log is kept as the run's ``certify.tsv``."""
 
 from __future__ import annotations
 
+import shutil
 from typing import Any
 
 from omegaconf import DictConfig
 
+from mrcert import certify_log
 from mrcert.certify_log import read_log
 from mrcert.smoothing import SmoothingDistribution
 from mrcert.tasks import RunContext
-from mrcert.tasks.certify import report
+from mrcert.tasks.certify import LOG, report
+
+
+def summarize(df, cfg: DictConfig) -> dict[str, float]:
+    """The certify metrics of an imported log, at its own ``task.radius``."""
+    radius = float(cfg.task.radius)
+    return certify_log.metrics(df, radius, float(cfg.task.radius_step), radius)[0]
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     df = read_log(t.path)
-    ctx.tracker.log_artifact(t.path)
+    kept = ctx.output_dir / LOG
+    shutil.copyfile(t.path, kept)
+    ctx.tracker.log_artifact(kept)
     dist = SmoothingDistribution((str(t.axis),), (float(t.sigma),))
     title = f"imported {t.dataset} {t.arch} {t.variant}, smoothing {t.axis}"
     return report(df, float(t.radius), float(t.radius_step), ctx, title, dist.region())

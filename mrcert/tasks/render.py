@@ -79,13 +79,13 @@ def render_scene(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             ctx.output_dir / "contact_sheet.png",
         )
     else:
-        motions, labels = motion_grid(list(t.axes), int(t.num), dict(t.extent))
+        motions, labels = motion_grid(list(t.axes or AXES), int(t.num), dict(t.extent))
         images, _ = scene.render(motions, backend=t.backend)
         seconds = time.perf_counter() - start
         names = [f"{i:03d}_{axis}_{value:+.5f}.png" for i, (axis, value) in enumerate(labels)]
         sheet = _grid_sheet(
             images,
-            list(t.axes),
+            list(t.axes or AXES),
             int(t.num),
             labels,
             ctx.output_dir / "contact_sheet.png",

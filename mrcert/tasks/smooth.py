@@ -12,12 +12,23 @@ from mrcert.tasks import RunContext
 from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
 
 COLUMNS = ["idx", "label", "predict", "correct", "n", "axis", "seconds"]
+LOG = "smooth.tsv"
+
+
+def summarize(df, cfg: DictConfig) -> dict[str, float]:
+    """Smoothed benign accuracy (abstain = wrong) of a (possibly merged) smooth log."""
+    return {
+        "smoothed_benign_accuracy": float(df["correct"].mean()),
+        "abstain_rate": float((df["predict"] == ABSTAIN).mean()),
+        "num_images": float(len(df)),
+        "seconds_per_image": float(df["seconds"].mean()),
+    }
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
-    log = ResultLog(ctx.output_dir / "smooth.tsv", COLUMNS)
+    log = ResultLog(ctx.output_dir / LOG, COLUMNS)
 
     def predict_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
@@ -31,12 +42,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         }
 
     run_per_image(log, ev.indices, predict_one, "smooth")
-    df = read_log(log.path, COLUMNS)
-    metrics = {
-        "smoothed_benign_accuracy": float(df["correct"].mean()),
-        "abstain_rate": float((df["predict"] == ABSTAIN).mean()),
-        "num_images": float(len(df)),
-        "seconds_per_image": float(df["seconds"].mean()),
-    }
+    metrics = summarize(read_log(log.path, COLUMNS), cfg)
     log_outputs(ctx, metrics, log.path)
     return metrics

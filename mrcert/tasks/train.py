@@ -1,11 +1,13 @@
-"""``task=train``: vanilla and motion-augmented base classifiers (SPEC section 4).
+"""``task=train``: vanilla and motion-augmented base classifiers with the recipe in ``train.*``.
 
 SGD (momentum, weight decay) with StepLR, seeded model initialisation and a batch order
-drawn per epoch from ``(seed, epoch)``; validation on the clean test images every epoch.
-Each epoch ends with an atomic ``last.pt`` (model, optimiser, scheduler, epoch, best), so a
-run restarted with ``task.resume=true`` continues in the same MLflow run and ends with the
-same weights as an uninterrupted one. ``best.pt`` and ``last.pt`` are logged as artifacts
-under ``checkpoints/``.
+drawn per epoch from ``(seed, epoch)``. Model selection uses a validation split of the
+*training* poses (``train.val_fraction`` per class, :mod:`mrcert.data.holdout`): ``best.pt``
+is the epoch with the highest ``val_acc``, so the test poses stay unseen until evaluation;
+the test accuracy of ``best.pt`` is measured once, at the end (``test_acc``). Each epoch ends
+with an atomic ``last.pt`` (model, optimiser, scheduler, epoch, best), so a run restarted with
+``task.resume=true`` continues in the same MLflow run and ends with the same weights as an
+uninterrupted one. ``best.pt`` and ``last.pt`` are logged as artifacts under ``checkpoints/``.
 """
 
 from __future__ import annotations
@@ -15,12 +17,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from tqdm import tqdm
 
 from mrcert import checkpoints
 from mrcert.data.datasets import Augment, ImageSet, load
+from mrcert.data.holdout import validation_split
 from mrcert.errors import MrcertError
 from mrcert.models import build_model
 from mrcert.runtime import resolve_device
@@ -43,7 +46,7 @@ def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, devic
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
-    t = cfg.task
+    t, r = cfg.task, cfg.train
     device = resolve_device(cfg.device)
     bundle = load(cfg.data)
     augment = None
@@ -51,13 +54,16 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         augment = Augment(cfg.motion.axis, float(cfg.motion.sigma), int(cfg.seed))
     elif cfg.model.variant != "vanilla":
         raise MrcertError(f"model.variant={cfg.model.variant!r} is not allowed: vanilla or augmented")
-    train_x, train_y = as_tensors(bundle.train(augment))
-    val_x, val_y = as_tensors(bundle.test())
+    all_x, all_y = as_tensors(bundle.train(augment))
+    keep, held = validation_split(all_y.numpy(), float(r.val_fraction), int(cfg.seed))
+    train_x, train_y = all_x[keep], all_y[keep]
+    val_x, val_y = all_x[held], all_y[held]
+    ctx.tracker.log_metrics({"train_images": len(keep), "val_images": len(held)})
 
     torch.manual_seed(int(cfg.seed))
     model = build_model(cfg.model, len(bundle.classes)).to(device)
-    optimizer = torch.optim.SGD(model.parameters(), lr=t.lr, momentum=t.momentum, weight_decay=t.weight_decay)
-    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=t.step_size, gamma=t.gamma)
+    optimizer = torch.optim.SGD(model.parameters(), lr=r.lr, momentum=r.momentum, weight_decay=r.weight_decay)
+    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=r.step_size, gamma=r.gamma)
     loss_fn = nn.CrossEntropyLoss()
     last_path, best_path = ctx.output_dir / checkpoints.LAST, ctx.output_dir / checkpoints.BEST
     start, best_acc = 0, -1.0
@@ -74,16 +80,18 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         "classes": bundle.classes,
         "variant": cfg.model.variant,
         "axis": cfg.motion.axis,
+        "model_config": OmegaConf.to_container(cfg.model.net, resolve=True),
+        "validation": {"fraction": float(r.val_fraction), "indices": held.tolist()},
     }
     history: dict[str, float] = {}
-    for epoch in range(start, int(t.epochs)):
+    for epoch in range(start, int(r.epochs)):
         began = time.perf_counter()
         model.train()
         order = torch.randperm(len(train_y), generator=torch.Generator().manual_seed(int(cfg.seed) * 100_003 + epoch))
         total_loss, correct = 0.0, 0
-        bar = tqdm(range(0, len(order), t.batch_size), desc=f"epoch {epoch + 1}/{t.epochs}", leave=False)
+        bar = tqdm(range(0, len(order), r.batch_size), desc=f"epoch {epoch + 1}/{r.epochs}", leave=False)
         for s in bar:
-            idx = order[s : s + t.batch_size]
+            idx = order[s : s + r.batch_size]
             x = train_x[idx].to(device).float().div_(255)
             y = train_y[idx].to(device)
             optimizer.zero_grad(set_to_none=True)
@@ -96,17 +104,19 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             bar.set_postfix(loss=f"{loss.item():.3f}", acc=f"{correct / (s + len(idx)):.3f}")
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
-        val_acc = accuracy(model, val_x, val_y, device, t.eval_batch_size)
         history = {
             "train_loss": total_loss / len(order),
             "train_acc": correct / len(order),
-            "val_acc": val_acc,
             "lr": lr,
             "epoch_seconds": time.perf_counter() - began,
         }
+        # With no validation split (train.val_fraction=0) every epoch replaces best.pt: the last is kept.
+        val_acc = accuracy(model, val_x, val_y, device, t.eval_batch_size) if len(held) else float("nan")
+        if len(held):
+            history["val_acc"] = val_acc
         ctx.tracker.log_metrics(history, step=epoch)
         weights = {k: v.cpu() for k, v in model.state_dict().items()}
-        if val_acc > best_acc:
+        if not len(held) or val_acc > best_acc:
             best_acc = val_acc
             checkpoints.save(meta | {"model": weights, "epoch": epoch, "val_acc": val_acc}, best_path)
         checkpoints.save(
@@ -121,12 +131,17 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             last_path,
         )
         tqdm.write(
-            f"epoch {epoch + 1}/{t.epochs}: loss {history['train_loss']:.4f} "
-            f"train acc {history['train_acc']:.3f} val acc {val_acc:.3f}"
+            f"epoch {epoch + 1}/{r.epochs}: loss {history['train_loss']:.4f} "
+            f"train acc {history['train_acc']:.3f} val acc {val_acc:.3f} ({len(held)} held-out training images)"
         )
     if not last_path.is_file():
-        raise MrcertError(f"task.epochs={t.epochs} trained nothing")
-    ctx.tracker.log_metrics({"best_val_acc": best_acc})
+        raise MrcertError(f"train.epochs={r.epochs} trained nothing")
+    # The test images, once, for the record: the selected model's accuracy on them.
+    model.load_state_dict(torch.load(best_path, map_location="cpu", weights_only=True)["model"])
+    test_x, test_y = as_tensors(bundle.test())
+    test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size)
+    summary = {"test_acc": test_acc} | ({"best_val_acc": best_acc} if len(held) else {})
+    ctx.tracker.log_metrics(summary)
     ctx.tracker.log_artifact(best_path, checkpoints.ARTIFACT_DIR)
     ctx.tracker.log_artifact(last_path, checkpoints.ARTIFACT_DIR)
-    return {"best_val_acc": best_acc, **history, "checkpoint": str(best_path)}
+    return summary | history | {"checkpoint": str(best_path)}

@@ -1,0 +1,195 @@
+"""Table cells: each cell is a composed config, and its value comes from exactly the runs of
+that config's cell key (:mod:`mrcert.identity`), or from none.
+
+:class:`RunIndex` holds the FINISHED runs of the store (one MLflow query). For a composed
+config it binds the model the way a task would (the FINISHED train run of the derived train
+key), computes the cell key, and keeps the runs that make one complete result: one run, or
+every shard ``0..N-1`` of one sharded job. Runs with other settings (a ``task.max=2`` smoke
+run, another alpha, another model) have other keys and are never mixed in; an incomplete
+sharded job leaves the cell empty and says which shards are missing. The cell's metrics are
+recomputed from its (merged) per-image logs by the task's own ``summarize``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig
+
+from mrcert import certify_log
+from mrcert.checkpoints import bind_checkpoint
+from mrcert.config import CONF_DIR
+from mrcert.errors import MrcertError
+from mrcert.identity import identify
+from mrcert.tasks import TASKS
+
+KEY, CELL = "tags.mrcert.key", "tags.mrcert.cell"
+
+
+def compose_config(overrides: Iterable[str]) -> DictConfig:
+    """The config that ``mrcert OVERRIDES`` would run (with its ``hydra`` node)."""
+    overrides = list(overrides)
+    if GlobalHydra.instance().is_initialized():  # inside a launch
+        return compose("config", overrides=overrides, return_hydra_config=True)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=overrides, return_hydra_config=True)
+
+
+@dataclass
+class Cell:
+    """A composed config and the runs that hold its result (empty with a ``note`` when none do)."""
+
+    cfg: DictConfig
+    runs: list[pd.Series] = field(default_factory=list)
+    note: str = ""
+
+    @property
+    def filled(self) -> bool:
+        return bool(self.runs)
+
+    @property
+    def run_ids(self) -> list[str]:
+        return [str(r["run_id"]) for r in self.runs]
+
+
+def _shards(run: pd.Series) -> tuple[int, int]:
+    """``(shard, num_shards)`` of a run (``(0, 1)`` when it was not sharded)."""
+    num = pd.to_numeric(run.get("params.task.num_shards"), errors="coerce")
+    shard = pd.to_numeric(run.get("params.task.shard"), errors="coerce")
+    return (0, 1) if pd.isna(num) else (int(shard), int(num))
+
+
+def complete(runs: pd.DataFrame) -> tuple[list[pd.Series], str]:
+    """The runs (of one cell key, newest first) that make one complete result, or a note why none do.
+
+    Identical run keys are the same computation: the newest counts. One unsharded run is a
+    result; two with different run keys (two imported logs for one cell) are ambiguous. Else
+    the newest sharded job whose shards ``0..N-1`` all finished is the result."""
+    if not len(runs):
+        return [], "no finished run"
+    newest = runs.drop_duplicates(KEY)
+    whole = [r for _, r in newest.iterrows() if _shards(r)[1] == 1]
+    if len(whole) == 1:
+        return whole, ""
+    if len(whole) > 1:
+        ids = ", ".join(str(r["run_id"]) for r in whole)
+        return [], f"ambiguous: {len(whole)} different finished runs ({ids})"
+    notes = []
+    by_size: dict[int, dict[int, pd.Series]] = {}
+    for _, r in newest.iterrows():
+        shard, num = _shards(r)
+        by_size.setdefault(num, {}).setdefault(shard, r)
+    for num, shards in by_size.items():
+        if set(shards) == set(range(num)):
+            return [shards[i] for i in range(num)], ""
+        missing = sorted(set(range(num)) - set(shards))
+        notes.append(f"shards {missing} of task.num_shards={num} not finished")
+    return [], "; ".join(notes)
+
+
+class RunIndex:
+    """The FINISHED runs of one MLflow experiment, indexed by run and cell key."""
+
+    def __init__(self, df: pd.DataFrame):
+        self.df = df
+        self._cache: dict[tuple[str, ...], Cell] = {}
+
+    @classmethod
+    def gather(cls, experiment: str) -> RunIndex:
+        import mlflow
+
+        exp = mlflow.MlflowClient().get_experiment_by_name(experiment)
+        if exp is None:
+            return cls(pd.DataFrame(columns=["run_id", "start_time", KEY, CELL]))
+        df = mlflow.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'")
+        for col in (KEY, CELL):
+            if col not in df:
+                df[col] = None
+        df = df[df[CELL].notna()] if len(df) else df
+        return cls(df.sort_values("start_time", ascending=False).reset_index(drop=True))
+
+    def train_run(self, key: str) -> str | None:
+        """The newest FINISHED train run with run key ``key``."""
+        hits = self.df[(self.df[KEY] == key) & (self.df.get("tags.mrcert.task") == "train")]
+        return None if hits.empty else str(hits.iloc[0]["run_id"])
+
+    def cell(self, overrides: Iterable[str]) -> Cell:
+        """The cell of the config ``overrides`` compose to (cached per override list)."""
+        overrides = tuple(overrides)
+        if overrides not in self._cache:
+            self._cache[overrides] = self.resolve(compose_config(overrides))
+        return self._cache[overrides]
+
+    def resolve(self, cfg: DictConfig) -> Cell:
+        task = TASKS[cfg.task.name]
+        train_run = None
+        if task.identity.needs_model:
+            try:
+                cfg, train_run = bind_checkpoint(cfg, self.train_run)
+            except MrcertError:
+                return Cell(cfg, note="no finished train run for its model")
+        ident = identify(cfg, task.identity, train_run)
+        runs, note = complete(self.df[self.df[CELL] == ident.cell])
+        return Cell(cfg, runs, note)
+
+    def children(self, parent: str) -> list[Cell]:
+        """The cells of a sweep's children (by parent run id), one per cell key."""
+        kids = self.df[self.df.get("tags.mlflow.parentRunId") == parent]
+        cells = []
+        for _, group in kids.groupby(CELL, sort=False):
+            runs, note = complete(group)
+            if runs:
+                cells.append(Cell(_run_config(runs[0]), runs, note))
+        return cells
+
+    # --- values ---------------------------------------------------------------------------
+    def log(self, cell: Cell) -> pd.DataFrame | None:
+        """The per-image log of a filled cell (its shards' logs merged), or None."""
+        if not cell.filled:
+            return None
+        task = TASKS[str(cell.runs[0]["tags.mrcert.task"])]
+        logs = [_run_log(r, task.log) for r in cell.runs]
+        if any(log is None for log in logs):
+            return None
+        return logs[0] if len(logs) == 1 else certify_log.concat_logs(logs)
+
+    def metric(self, cell: Cell, name: str) -> float:
+        """Metric ``name`` of a cell, recomputed from its merged log (NaN when empty)."""
+        log = self.log(cell)
+        if log is None:
+            return float("nan")
+        return float(TASKS[cell.cfg.task.name].summarize(log, cell.cfg).get(name, float("nan")))
+
+
+def _run_config(run: pd.Series) -> DictConfig:
+    """A run's resolved config (its ``resolved_config.yaml``)."""
+    from omegaconf import OmegaConf
+
+    path = _run_file(run, "resolved_config.yaml")
+    if path is None:
+        raise MrcertError(f"run {run['run_id']} has no resolved_config.yaml")
+    return OmegaConf.load(path)
+
+
+def _run_file(run: pd.Series, name: str) -> Path | None:
+    """A file of a run: from its output folder, else downloaded from its artifacts (None if gone)."""
+    local = Path(str(run.get("tags.mrcert.output_dir", ""))) / name
+    if local.is_file():
+        return local
+    import mlflow
+
+    try:
+        return Path(mlflow.artifacts.download_artifacts(run_id=str(run["run_id"]), artifact_path=name))
+    except Exception:  # noqa: BLE001 - a run whose file is gone
+        return None
+
+
+def _run_log(run: pd.Series, name: str) -> pd.DataFrame | None:
+    """A run's per-image log, or None when it is gone."""
+    path = _run_file(run, name)
+    return None if path is None else certify_log.read_log(path, ["idx"])

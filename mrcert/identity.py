@@ -1,0 +1,182 @@
+"""Run identity: which run a config describes, from the trained model to the table cell.
+
+Every task declares, with an :class:`Identity`, which config keys define its result and which
+do not (batch size, back end, device, output paths, resume flags...). :func:`identify` turns a
+config into two keys:
+
+* the **run key**: a hash of every result-defining value. Skipping finished work, resuming
+  interrupted work, finding a trained model and filling a table cell all compare run keys,
+  and nothing else;
+* the **cell key**: the run key without the keys that only split one result into pieces
+  (``task.shard``/``task.num_shards``: a sharded certification is one result in several runs).
+
+A file given by path (a checkpoint, a point cloud, an imported log) is identified by the
+sha256 of its content, so editing the file changes the key; a checkpoint taken from a train
+run is identified by its ``runs:/<run id>/...`` URI, so an evaluation names the exact model.
+
+Classification is by the longest matching prefix of a dotted key among ``defines`` and
+``ignores``; a key that neither mentions defines the result (a new key is never silently
+ignored). ``tests/test_identity.py`` checks that every key of every shipped config is
+classified and that changing any defining key changes the run key.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+
+from mrcert.config import plain
+
+COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir")
+"""Where outputs go and how runs are tracked or scheduled: never part of a result."""
+
+PARTITION = ("task.shard", "task.num_shards")
+"""Keys that split one result over several runs (shards): in the run key, not in the cell key."""
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Which config keys define a task's result.
+
+    ``defines`` / ``ignores``: dotted prefixes; the longest match wins, and a key matching
+    neither defines the result. ``ignore_when``: ``(key, value, prefix)`` -- ignore ``prefix``
+    when ``key`` has ``value`` (a vanilla model never sees the motion axis). ``files``: keys
+    whose value is a file path, identified by the file's content. ``partition``: keys left
+    out of the cell key. ``needs_model``: the task evaluates a trained classifier, whose
+    checkpoint (``model.checkpoint``) must be bound before the key exists.
+    """
+
+    defines: tuple[str, ...]
+    ignores: tuple[str, ...] = ()
+    ignore_when: tuple[tuple[str, Any, str], ...] = ()
+    files: tuple[str, ...] = ()
+    partition: tuple[str, ...] = ()
+    needs_model: bool = False
+
+    def ignored(self, cfg: Mapping[str, Any]) -> tuple[str, ...]:
+        extra = tuple(prefix for key, value, prefix in self.ignore_when if _get(cfg, key) == value)
+        return (*COMMON_IGNORES, *self.ignores, *extra)
+
+    def classify(self, key: str, ignored: tuple[str, ...]) -> bool | None:
+        """True when ``key`` defines the result, False when it is ignored, None when neither
+        prefix list mentions it (it then defines the result too)."""
+        longest = lambda prefixes: max((len(p) for p in prefixes if _matches(key, p)), default=-1)  # noqa: E731
+        defines, ignores = longest(self.defines), longest(ignored)
+        if defines < 0 and ignores < 0:
+            return None
+        return defines > ignores  # on a tie (ignore_when naming a defined group) the key is ignored
+
+
+@dataclass(frozen=True)
+class RunIdentity:
+    """The keys of one run and the values they hash."""
+
+    key: str
+    cell: str
+    values: dict[str, str] = field(repr=False)
+    checkpoint: str | None = None
+    train_run: str | None = None
+
+    def tags(self) -> dict[str, str]:
+        tags = {"mrcert.key": self.key, "mrcert.cell": self.cell}
+        if self.checkpoint:
+            tags["mrcert.checkpoint"] = self.checkpoint
+        if self.train_run:
+            tags["mrcert.train_run"] = self.train_run
+        return tags
+
+    def params(self) -> dict[str, str]:
+        """What a run records about the model it used (the train run, or the file's digest)."""
+        out = {}
+        if self.checkpoint:
+            out["checkpoint.identity"] = self.checkpoint
+        if self.train_run:
+            out["checkpoint.train_run_id"] = self.train_run
+        return out
+
+
+def _matches(key: str, prefix: str) -> bool:
+    return key == prefix or key.startswith(prefix + ".")
+
+
+def _get(cfg: Mapping[str, Any], dotted: str) -> Any:
+    node: Any = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts and lists as ``{"a.b.0": value}`` (empty containers kept as leaves)."""
+    if isinstance(data, Mapping):
+        items = data.items()
+    elif isinstance(data, list):
+        items = enumerate(data)
+    else:
+        return {prefix: data}
+    out: dict[str, Any] = {}
+    for key, value in items:
+        out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    if not out and prefix:
+        out[prefix] = data
+    return out
+
+
+_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def file_identity(value: Any) -> Any:
+    """``sha256:<hex>`` of a file's content; ``runs:/`` URIs, folders and unset values as given."""
+    if not isinstance(value, str) or not value or value == "???" or ":/" in value:
+        return value
+    path = Path(value)
+    if not path.is_file():
+        return os.path.abspath(value)
+    stat = path.stat()
+    cache = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    if cache not in _DIGESTS:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        _DIGESTS[cache] = "sha256:" + h.hexdigest()
+    return _DIGESTS[cache]
+
+
+def defining_values(cfg: DictConfig | Mapping[str, Any], identity: Identity) -> dict[str, Any]:
+    """Every result-defining leaf of ``cfg`` (files replaced by their content's identity)."""
+    data = plain(cfg)
+    ignored = identity.ignored(data)
+    out = {}
+    for key, value in flatten(data).items():
+        if identity.classify(key, ignored) is False:
+            continue
+        out[key] = file_identity(value) if any(_matches(key, f) for f in identity.files) else value
+    return out
+
+
+def digest(values: Mapping[str, Any]) -> str:
+    blob = json.dumps(values, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:32]
+
+
+def identify(cfg: DictConfig | Mapping[str, Any], identity: Identity, train_run: str | None = None) -> RunIdentity:
+    """The run and cell keys of ``cfg`` (its ``model.checkpoint`` already bound when the task
+    needs a model: see :func:`mrcert.checkpoints.bind_checkpoint`)."""
+    values = defining_values(cfg, identity)
+    checkpoint = None
+    if identity.needs_model:
+        checkpoint = values.get("model.checkpoint")
+        if not checkpoint:
+            raise ValueError("identify() needs model.checkpoint bound for a task that evaluates a model")
+    cell = {k: v for k, v in values.items() if not any(_matches(k, p) for p in identity.partition)}
+    return RunIdentity(digest(values), digest(cell), values, checkpoint, train_run)

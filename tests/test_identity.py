@@ -1,0 +1,118 @@
+"""Run identity: every config key is classified, and the run key moves with exactly the
+result-defining keys of each task."""
+
+import copy
+
+import pytest
+
+from mrcert.config import CONF_DIR, plain
+from mrcert.identity import file_identity, flatten, identify
+from mrcert.tasks import TASKS
+from tests.conftest import compose_cfg
+
+REQUIRED = {"import": ["task.path=certify.tsv"]}
+EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
+DATA = sorted(p.stem for p in (CONF_DIR / "data").glob("*.yaml"))
+BOUND = "runs:/0123456789abcdef/checkpoints/best.pt"
+
+
+def composed(task: str, *extra: str) -> dict:
+    cfg = plain(compose_cfg([f"task={task}", *REQUIRED.get(task, []), *extra]))
+    if TASKS[task].identity.needs_model:
+        cfg["model"]["checkpoint"] = BOUND  # what binding does before a key exists
+    return cfg
+
+
+def set_key(cfg: dict, dotted: str, value) -> dict:
+    """A copy of ``cfg`` with the leaf at ``dotted`` replaced (keys may contain dots: ``mrcert.task``)."""
+    out = copy.deepcopy(cfg)
+    node, rest = out, dotted
+    while True:
+        if isinstance(node, list):
+            head, _, rest = rest.partition(".")
+            if not rest:
+                node[int(head)] = value
+                return out
+            node = node[int(head)]
+            continue
+        if rest in node:
+            node[rest] = value
+            return out
+        head = next(k for k in node if rest.startswith(k + "."))
+        node, rest = node[head], rest[len(head) + 1 :]
+
+
+def changed(value):
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, (int, float)):
+        return value + 1
+    if isinstance(value, list):
+        return [*value, "x"]
+    return f"{value}x"
+
+
+@pytest.mark.parametrize("data", DATA)
+@pytest.mark.parametrize("task", list(TASKS))
+def test_every_key_of_every_shipped_config_is_classified(task, data):
+    cfg = composed(task, f"data={data}")
+    identity = TASKS[task].identity
+    unclassified = [k for k in flatten(cfg) if identity.classify(k, identity.ignored(cfg)) is None]
+    assert unclassified == []
+
+
+@pytest.mark.parametrize("variant", ["vanilla", "augmented"])
+@pytest.mark.parametrize("task", list(TASKS))
+def test_the_run_key_changes_with_every_defining_key_and_no_other(task, variant):
+    cfg = composed(task, f"model.variant={variant}")
+    identity = TASKS[task].identity
+    base = identify(cfg, identity)
+    wrong = []
+    for key, value in flatten(cfg).items():
+        other = set_key(cfg, key, changed(value))
+        defining = identity.classify(key, identity.ignored(other)) is not False
+        if (identify(other, identity).key != base.key) != defining:
+            wrong.append((key, "defining" if defining else "ignored"))
+    assert wrong == []
+
+
+def test_what_defines_a_result_and_what_does_not():
+    certify = composed("certify")
+    key = lambda cfg, task="certify": identify(cfg, TASKS[task].identity)  # noqa: E731
+    # Result-defining: the model, the images, the statistics.
+    for dotted, value in [("model.checkpoint", "runs:/fedcba/checkpoints/best.pt"), ("task.max", 2),
+                          ("task.alpha", 0.05), ("task.n", 10), ("seed", 1), ("motion.sigma", 0.2)]:
+        assert key(set_key(certify, dotted, value)).key != key(certify).key, dotted
+    # How and where it runs: never.
+    for dotted, value in [("task.batch_size", 7), ("task.backend", "torch"), ("device", "cpu"),
+                          ("task.resume", False), ("paths.outputs", "/elsewhere"), ("data.cache_dir", "/c"),
+                          ("tracking.uri", "http://x"), ("train.epochs", 3), ("skip_finished", True)]:
+        assert key(set_key(certify, dotted, value)).key == key(certify).key, dotted
+    # Shards split one result: a shard has its own run key but the cell key of the whole.
+    shard = set_key(set_key(certify, "task.num_shards", 4), "task.shard", 2)
+    assert key(shard).key != key(certify).key and key(shard).cell == key(certify).cell
+    # A vanilla model never sees the motion; an augmented one is defined by it.
+    vanilla, augmented = composed("train"), composed("train", "model.variant=augmented")
+    assert key(set_key(vanilla, "motion.sigma", 0.3), "train").key == key(vanilla, "train").key
+    assert key(set_key(augmented, "motion.sigma", 0.3), "train").key != key(augmented, "train").key
+    assert key(set_key(vanilla, "train.lr", 0.5), "train").key != key(vanilla, "train").key
+
+
+def test_a_checkpoint_file_is_identified_by_its_content(tmp_path):
+    a, b, c = tmp_path / "a.pt", tmp_path / "b.pt", tmp_path / "c.pt"
+    a.write_bytes(b"weights")
+    b.write_bytes(b"weights")
+    c.write_bytes(b"other weights")
+    assert file_identity(str(a)) == file_identity(str(b)) != file_identity(str(c))
+    assert file_identity(BOUND) == BOUND
+    certify = composed("certify")
+    keys = {p: identify(set_key(certify, "model.checkpoint", str(p)), TASKS["certify"].identity) for p in (a, b, c)}
+    assert keys[a].key == keys[b].key != keys[c].key
+    assert keys[a].checkpoint == file_identity(str(a)) and keys[a].checkpoint.startswith("sha256:")
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+@pytest.mark.parametrize("task", ["train", "certify", "smooth", "attack"])
+def test_experiments_set_no_key_that_the_task_does_not_have(experiment, task):
+    own = set(compose_cfg([f"task={task}"]).task)
+    assert set(compose_cfg([f"experiment={experiment}", f"task={task}"]).task) == own

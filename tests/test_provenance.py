@@ -1,0 +1,119 @@
+"""Where every number comes from: a run is reused, resumed or looked up only by its run key,
+through the command line and the task API against a real SQLite store."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import pytest
+
+from mrcert.__main__ import bind, run_task
+from mrcert.certify_log import read_log
+from tests.conftest import ROOT, TINY, compose_cfg, run_cli
+
+RECIPE = [*TINY, "train.epochs=2", "train.batch_size=8"]
+DEMO = ["experiment=demo", *RECIPE]
+CERTIFY = ["task=certify", "task.n0=8", "task.n=40", "task.max=3", "task.skip=1"]
+
+
+def runs(out: Path, where: str = "") -> list:
+    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
+    return mlflow.search_runs(search_all_experiments=True, filter_string=where, output_format="list")
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """A store with one tiny train run (vanilla, the recipe above)."""
+    out = tmp_path_factory.mktemp("trained")
+    run_task(compose_cfg([*RECIPE, "task=train"], out), out / "runs" / "train")
+    return out
+
+
+def checkpoint(out: Path, name: str) -> Path:
+    (path,) = out.glob(f"runs/train/{name}")
+    return path
+
+
+def test_rerunning_a_sweep_keeps_checkpoint_lookup_on_the_trained_model(tmp_path):
+    for _ in range(2):  # `make demo` twice: the second sweep skips its jobs but makes a parent run
+        proc = run_cli(["-m", *DEMO, "task=train"], tmp_path)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    parents = runs(tmp_path, "tags.`mrcert.multirun` = 'parent'")
+    trains = runs(tmp_path, "tags.`mrcert.task` = 'train'")
+    assert len(parents) == 2 and len(trains) == 4  # 2 parents + 2 trained models
+    for variant in ("vanilla", "augmented"):
+        cfg = compose_cfg([*DEMO, "task=certify", f"model.variant={variant}", "task.max=1", "task.n=20"], tmp_path)
+        run_task(cfg, tmp_path / "runs" / f"certify-{variant}")
+        (run,) = runs(tmp_path, f"tags.`mrcert.task` = 'certify' and tags.`mrcert.variant` = '{variant}'")
+        train = mlflow.get_run(run.data.tags["mrcert.train_run"])
+        assert train.data.tags["mrcert.variant"] == variant and "mrcert.multirun" not in train.data.tags
+        assert run.data.tags["mrcert.checkpoint"] == f"runs:/{train.info.run_id}/checkpoints/best.pt"
+        assert run.data.params["checkpoint.train_run_id"] == train.info.run_id
+
+
+def test_skip_finished_reuses_only_a_run_of_the_same_model_and_ignores_batch_size(trained, tmp_path):
+    best, last = checkpoint(trained, "best.pt"), checkpoint(trained, "last.pt")
+    common = [*TINY, *CERTIFY, "skip_finished=true"]
+    run_task(compose_cfg([*common, f"model.checkpoint={best}"], tmp_path), tmp_path / "runs" / "a")
+    # Another model: computed, not taken from the first run.
+    run_task(compose_cfg([*common, f"model.checkpoint={last}"], tmp_path), tmp_path / "runs" / "b")
+    # Another batch size, back end or device: the same result, reused.
+    again = [f"model.checkpoint={best}", "task.batch_size=7", "task.backend=torch", "device=cpu"]
+    run_task(compose_cfg([*common, *again], tmp_path), tmp_path / "runs" / "c")
+    done = runs(tmp_path, "tags.`mrcert.task` = 'certify'")
+    assert len(done) == 2 and not (tmp_path / "runs" / "c" / "certify.tsv").exists()
+    digests = {r.data.tags["mrcert.checkpoint"] for r in done}
+    assert len(digests) == 2 and all(d.startswith("sha256:") for d in digests)
+    assert {r.data.params["model.checkpoint"] for r in done} == {str(best), str(last)}
+
+
+def test_a_run_held_by_a_live_process_is_never_resumed_and_a_killed_one_is(trained, tmp_path):
+    args = [*TINY, "task=certify", "task.n0=8", "task.n=3000", "task.max=3", "task.skip=1",
+            f"model.checkpoint={checkpoint(trained, 'best.pt')}"]  # fmt: skip
+    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path)}
+    first = subprocess.Popen(
+        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    deadline = time.time() + 240
+    while time.time() < deadline and not any(
+        len(p.read_text().splitlines()) >= 2 for p in tmp_path.glob("runs/certify/*/certify.tsv")
+    ):
+        time.sleep(0.05)
+    first.send_signal(signal.SIGSTOP)  # alive, holding its run, writing nothing
+    try:
+        (log,) = tmp_path.glob("runs/certify/*/certify.tsv")
+        rows = log.read_text()
+        second = run_cli(args, tmp_path)
+        assert second.returncode == 2, second.stderr[-2000:]
+        assert "still being written by a live process" in second.stderr and f"pid {first.pid}" in second.stderr
+        assert log.read_text() == rows  # the second process wrote nothing into the live run
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+    third = run_cli(args, tmp_path)  # the killed run is resumed
+    assert third.returncode == 0, third.stderr[-2000:]
+    (run,) = runs(tmp_path, "tags.`mrcert.task` = 'certify'")
+    assert run.info.status == "FINISHED" and Path(run.data.tags["mrcert.output_dir"]) == log.parent
+    assert read_log(log)["idx"].tolist() == [0, 1, 2]
+
+
+def test_a_run_that_failed_on_an_error_is_not_resumed(trained, tmp_path):
+    cfg = compose_cfg([*TINY, *CERTIFY, f"model.checkpoint={checkpoint(trained, 'best.pt')}"], tmp_path)
+    bound, ident = bind(cfg)
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = mlflow.set_experiment("mrcert")
+    failed_dir = tmp_path / "failed"
+    failed_dir.mkdir()
+    (failed_dir / "certify.tsv").write_text("not a certify log\n")
+    client = mlflow.MlflowClient()
+    failed = client.create_run(exp.experiment_id, tags=ident.tags() | {"mrcert.output_dir": str(failed_dir)})
+    client.set_terminated(failed.info.run_id, "FAILED")
+    run_task(cfg, tmp_path / "runs" / "new")
+    done = runs(tmp_path, "attributes.status = 'FINISHED'")
+    assert len(done) == 1 and done[0].info.run_id != failed.info.run_id
+    assert len(read_log(tmp_path / "runs" / "new" / "certify.tsv")) == 3
