@@ -98,6 +98,7 @@ class RunIndex:
     def __init__(self, df: pd.DataFrame):
         self.df = df
         self._cache: dict[tuple[str, ...], Cell] = {}
+        self._logs: dict[tuple[str, ...], pd.DataFrame | None] = {}
 
     @classmethod
     def gather(cls, experiment: str) -> RunIndex:
@@ -152,11 +153,13 @@ class RunIndex:
         """The per-image log of a filled cell (its shards' logs merged), or None."""
         if not cell.filled:
             return None
-        task = TASKS[str(cell.runs[0]["tags.mrcert.task"])]
-        logs = [_run_log(r, task.log) for r in cell.runs]
-        if any(log is None for log in logs):
-            return None
-        return logs[0] if len(logs) == 1 else certify_log.concat_logs(logs)
+        ids = tuple(cell.run_ids)
+        if ids not in self._logs:
+            task = TASKS[str(cell.runs[0]["tags.mrcert.task"])]
+            logs = [_run_log(r, task.log) for r in cell.runs]
+            merged = None if any(log is None for log in logs) else certify_log.concat_logs(logs)
+            self._logs[ids] = merged
+        return self._logs[ids]
 
     def metric(self, cell: Cell, name: str) -> float:
         """Metric ``name`` of a cell, recomputed from its merged log (NaN when empty)."""

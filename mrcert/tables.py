@@ -12,6 +12,7 @@ filled each cell (``<table>_sources.csv``/``.md``: run ids and MLflow links). Wi
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,6 +50,7 @@ def robust(who: str, k: int) -> Measure:
     return Measure("attack", f"{who}_robust_accuracy", (f"attack.k={k}",))
 
 
+@functools.cache
 def sweep_combos(experiment: str) -> list[tuple[str, ...]]:
     """Every job of an experiment's sweep as its overrides, in the sweeper's order."""
     params = compose_config([f"experiment={experiment}"]).hydra.sweeper.params or {}
@@ -123,7 +125,9 @@ class Source:
         return value
 
     def sources(self, table: str) -> pd.DataFrame:
-        return pd.DataFrame([p for p in self.provenance if p["table"] == table])
+        """Per cell of ``table``: row, column, value, the runs behind it, their links, why it is empty."""
+        rows = [{k: v for k, v in p.items() if k != "table"} for p in self.provenance if p["table"] == table]
+        return pd.DataFrame(rows, columns=["row", "column", "value", "runs", "links", "note"])
 
 
 def model_label(arch: str, variant: str, smoothed: bool = True) -> str:
@@ -217,35 +221,36 @@ def perturbed_5_vs_100_table(src: Source, show_paper: bool = False, name: str = 
 
 
 def tabletop_table(src: Source, k: int = 10, show_paper: bool = False, name: str = "tabletop") -> pd.DataFrame:
-    """The real-robot table: benign and K-perturbed accuracy, base vs smoothed, six axes.
+    """The real-robot table: benign and K-perturbed accuracy, base vs smoothed, per axis; one
+    pair of rows per model of the experiment.
 
-    The paper reports one benign accuracy for both; ours is the mean over the six axes' runs."""
+    The paper reports one benign accuracy for both; ours is the mean over the model's axes."""
     exp = src.experiment_for("tabletop")
-    jobs = list(src.rows(exp, SMOOTHED_BENIGN))
+    by_model: dict[str, list] = {}
+    for combo, first in src.rows(exp, SMOOTHED_BENIGN):
+        model = model_label(str(first.cfg.model.arch), str(first.cfg.model.variant), smoothed=False)
+        by_model.setdefault(model, []).append((combo, first))
     data = {}
-    for idx, who in enumerate(("base", "smoothed")):
-        benign = base_benign(k) if who == "base" else SMOOTHED_BENIGN
-        label = who.capitalize()
-        cells = [src.cell(exp, combo, benign) for combo, _ in jobs]
-        row = {
-            "Benign Accuracy": _cell(
-                src.value(name, label, "Benign Accuracy", cells, benign.metric) if cells else float("nan"),
-                paper_results.TABLETOP_BENIGN,
-                show_paper,
-            )
-        }
-        for combo, first in jobs:
-            ax = _axis(first)
-            value = src.value(
-                name, label, AXIS_NAMES.get(ax, ax), [src.cell(exp, combo, robust(who, k))], f"{who}_robust_accuracy"
-            )
-            row[AXIS_NAMES.get(ax, ax)] = _cell(
-                value, paper_results.TABLETOP_PERTURBED_10.get(ax, (None, None))[idx], show_paper
-            )
-        data[label] = row
-    df = pd.DataFrame.from_dict(data, orient="index")
-    df.index.name = "Model"
-    return df
+    for model, jobs in by_model.items():
+        for idx, who in enumerate(("base", "smoothed")):
+            benign = base_benign(k) if who == "base" else SMOOTHED_BENIGN
+            label = (who.capitalize(), model)
+            cells = [src.cell(exp, combo, benign) for combo, _ in jobs]
+            row = {
+                "Benign Accuracy": _cell(
+                    src.value(name, label, "Benign Accuracy", cells, benign.metric),
+                    paper_results.TABLETOP_BENIGN,
+                    show_paper,
+                )
+            }
+            for combo, first in jobs:
+                ax = _axis(first)
+                measure = robust(who, k)
+                value = src.value(name, label, AXIS_NAMES.get(ax, ax), [src.cell(exp, combo, measure)], measure.metric)
+                reported = paper_results.TABLETOP_PERTURBED_10.get(ax, (None, None))[idx]
+                row[AXIS_NAMES.get(ax, ax)] = _cell(value, reported, show_paper)
+            data[label] = row
+    return _frame(data, ["Who", "Model"]) if data else pd.DataFrame()
 
 
 def sweep_table(src: Source, parent: str | None = None, name: str = "sweep") -> pd.DataFrame:

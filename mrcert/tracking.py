@@ -7,11 +7,9 @@ file in the sweep directory -- never by jobs racing to create them (SPEC section
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import os
-import socket
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -27,6 +25,7 @@ from mrcert import identity
 from mrcert.config import plain
 from mrcert.errors import MrcertError
 from mrcert.identity import RunIdentity
+from mrcert.store import FileLock, ensure_sqlite_store, probe_server
 
 log = logging.getLogger(__name__)
 
@@ -40,20 +39,28 @@ def flatten(data: Any) -> dict[str, str]:
 
 
 def configure(tracking: DictConfig):
-    """The mlflow module pointed at the configured store; makes the SQLite folder."""
+    """The mlflow module pointed at the configured store: a SQLite store is created atomically
+    and checked, a server is probed (see :mod:`mrcert.store`)."""
     import mlflow
 
     uri = str(tracking.uri)
     if uri.startswith("sqlite:///"):
-        db = Path(uri[len("sqlite:///") :])
+        db = sqlite_path(uri)
         try:
             db.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise MrcertError(f"cannot create the MLflow store folder {db.parent}: {exc}") from None
         if not os.access(db.parent, os.W_OK):
             raise MrcertError(f"the MLflow store folder {db.parent} is not writable; set tracking.uri elsewhere")
+        ensure_sqlite_store(db)
+    elif uri.startswith(("http://", "https://")):
+        probe_server(uri)
     mlflow.set_tracking_uri(uri)
     return mlflow
+
+
+def sqlite_path(uri: str) -> Path:
+    return Path(uri[len("sqlite:///") :])
 
 
 def ensure_experiment(tracking: DictConfig) -> str:
@@ -70,7 +77,19 @@ def ensure_experiment(tracking: DictConfig) -> str:
     if location:
         Path(location).mkdir(parents=True, exist_ok=True)
         location = Path(location).as_uri()
-    return client.create_experiment(tracking.experiment, artifact_location=location)
+    uri = str(tracking.uri)
+    if uri.startswith("sqlite:///"):  # one creator at a time; the others find it made
+        db = sqlite_path(uri)
+        with FileLock(db.with_name(f".{db.name}.lock")):
+            exp = client.get_experiment_by_name(tracking.experiment)
+            return exp.experiment_id if exp else client.create_experiment(tracking.experiment, location)
+    try:
+        return client.create_experiment(tracking.experiment, artifact_location=location)
+    except Exception:  # another job created it in between (a server serialises creations)
+        exp = client.get_experiment_by_name(tracking.experiment)
+        if exp is None:
+            raise
+        return exp.experiment_id
 
 
 def run_tags(cfg: DictConfig) -> dict[str, str]:
@@ -166,46 +185,10 @@ def finished_run(cfg: DictConfig, ident: RunIdentity):
     return runs[0] if runs else None
 
 
-class RunLock:
-    """An exclusive lock on a run's output folder, held by the process writing the run.
-
-    ``flock`` locks die with their process, so a killed run's lock is free and a live one's
-    is not: a second process never resumes (and writes into) a run that is still being written.
-    """
-
-    NAME = ".mrcert.lock"
-
-    def __init__(self, folder: Path):
-        self.path = Path(folder) / self.NAME
-        self._file = None
-
-    def acquire(self) -> bool:
-        """Take the lock; False (and nothing held) when another live process holds it."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        f = open(self.path, "a+")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            f.close()
-            return False
-        f.seek(0)
-        f.truncate()
-        f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
-        f.flush()
-        self._file = f
-        return True
-
-    def holder(self) -> str:
-        try:
-            return self.path.read_text().strip() or "unknown"
-        except OSError:
-            return "unknown"
-
-    def release(self) -> None:
-        if self._file is not None:
-            fcntl.flock(self._file, fcntl.LOCK_UN)
-            self._file.close()
-            self._file = None
+def run_lock(folder: Path) -> FileLock:
+    """The lock a process holds on the output folder of the run it writes: a second process
+    never resumes (and writes into) a run that a live one still holds; a killed one's is free."""
+    return FileLock(Path(folder) / ".mrcert.lock")
 
 
 def _resumable(cfg: DictConfig, ident: RunIdentity):
@@ -216,8 +199,8 @@ def _resumable(cfg: DictConfig, ident: RunIdentity):
         return None, None
     for run in find_runs(cfg.tracking, ident.key, finished=False)[:1]:
         folder = Path(run.data.tags["mrcert.output_dir"])
-        lock = RunLock(folder)
-        if not lock.acquire():
+        lock = run_lock(folder)
+        if not lock.acquire(blocking=False):
             raise MrcertError(
                 f"run {run.info.run_id} with this config is still being written by a live process "
                 f"({lock.holder()}, {folder}); wait for it to finish, or stop it and rerun to resume it"
@@ -254,8 +237,8 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
         log.info("resuming MLflow run %s from %s", previous.info.run_id, output_dir)
         run_ctx = mlflow.start_run(run_id=previous.info.run_id)
     else:
-        lock = RunLock(output_dir)
-        if not lock.acquire():
+        lock = run_lock(output_dir)
+        if not lock.acquire(blocking=False):
             raise MrcertError(f"the run folder {output_dir} is held by another process ({lock.holder()})")
         tags = run_tags(cfg) | ident.tags() | {"mrcert.output_dir": str(output_dir.resolve())}
         run_ctx = mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags)

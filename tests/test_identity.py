@@ -80,13 +80,27 @@ def test_what_defines_a_result_and_what_does_not():
     certify = composed("certify")
     key = lambda cfg, task="certify": identify(cfg, TASKS[task].identity)  # noqa: E731
     # Result-defining: the model, the images, the statistics.
-    for dotted, value in [("model.checkpoint", "runs:/fedcba/checkpoints/best.pt"), ("task.max", 2),
-                          ("task.alpha", 0.05), ("task.n", 10), ("seed", 1), ("motion.sigma", 0.2)]:
+    for dotted, value in [
+        ("model.checkpoint", "runs:/fedcba/checkpoints/best.pt"),
+        ("task.max", 2),
+        ("task.alpha", 0.05),
+        ("task.n", 10),
+        ("seed", 1),
+        ("motion.sigma", 0.2),
+    ]:
         assert key(set_key(certify, dotted, value)).key != key(certify).key, dotted
     # How and where it runs: never.
-    for dotted, value in [("task.batch_size", 7), ("task.backend", "torch"), ("device", "cpu"),
-                          ("task.resume", False), ("paths.outputs", "/elsewhere"), ("data.cache_dir", "/c"),
-                          ("tracking.uri", "http://x"), ("train.epochs", 3), ("skip_finished", True)]:
+    for dotted, value in [
+        ("task.batch_size", 7),
+        ("task.backend", "torch"),
+        ("device", "cpu"),
+        ("task.resume", False),
+        ("paths.outputs", "/elsewhere"),
+        ("data.cache_dir", "/c"),
+        ("tracking.uri", "http://x"),
+        ("train.epochs", 3),
+        ("skip_finished", True),
+    ]:
         assert key(set_key(certify, dotted, value)).key == key(certify).key, dotted
     # Shards split one result: a shard has its own run key but the cell key of the whole.
     shard = set_key(set_key(certify, "task.num_shards", 4), "task.shard", 2)

@@ -9,13 +9,8 @@ from pathlib import Path
 
 import mlflow
 import pytest
-from hydra import compose, initialize_config_dir
 
-from mrcert import tables
-from mrcert.__main__ import run_task
-from mrcert.certify_log import read_log
-from mrcert.config import CONF_DIR
-from tests.conftest import TINY, run_cli
+from tests.conftest import run_cli
 from tests.test_tables import COHEN
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -125,26 +120,3 @@ def test_submitit_local_launcher(tmp_path):
     parent, children, _ = children_of_one_parent(mlflow.MlflowClient())
     assert parent.info.status == "FINISHED" and len(children) == 2
     assert all(c.info.status == "FINISHED" and c.data.metrics["num_images"] == 5 for c in children)
-
-
-def test_sharded_certification_merges_into_one_table_cell(tmp_path):
-    def cfg(overrides):
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            return compose("config", overrides=[*TINY, *overrides, f"paths.outputs={tmp_path}"])
-
-    run_task(cfg(["task=train", "train.epochs=1", "train.batch_size=8"]), tmp_path / "runs" / "train")
-    certify = ["task=certify", "task.n0=8", "task.n=40", "task.max=6", "task.batch_size=50"]
-    for shard in range(3):
-        run_task(cfg([*certify, f"task.shard={shard}", "task.num_shards=3"]), tmp_path / "runs" / f"shard{shard}")
-    merged = [read_log(p) for p in sorted((tmp_path / "runs").glob("shard*/certify.tsv"))]
-    assert sorted(len(m) for m in merged) == [2, 2, 2]
-    import pandas as pd
-
-    whole = pd.concat(merged)
-    expected = ((whole.correct == 1) & (whole.radius >= 0.1) & (whole.predict >= 0)).mean()
-    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    runs = tables.Runs.gather("mrcert", "metaroom_synth", "quick")
-    table = tables.certified_table(runs, ("small_cnn",), ("tz",))
-    assert table.loc[("Tz", "Smoothed Vanilla SmallCNN"), "Certified Acc"] == pytest.approx(expected)
-    radii, _ = tables.curves(runs, ("small_cnn",), ("tz",))["tz"]["Smoothed Vanilla SmallCNN"]
-    assert len(radii) >= 1

@@ -20,6 +20,7 @@ from tests.conftest import TINY, compose_cfg, run_cli
 
 # The tiny data and a short recipe; every cell of the tables gets the same overrides.
 SETTINGS = [*TINY, "train.epochs=2", "train.batch_size=8"]
+TASKS = ("smooth", "attack", "certify")
 DEMO = ["experiment=demo", *SETTINGS]
 # idx label predict radius correct time -- certified accuracy at 0.1: rows 0 and 18 -> 2/5.
 COHEN = (
@@ -98,7 +99,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     out = tmp_path
     run(out, train_overrides("vanilla"), "train")
     shard = ["model.variant=vanilla", "task.num_shards=2", "task.skip=1", "task.max=4"]
-    for task in ("smooth", "attack"):
+    for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=0"], f"{task}-0")
     overrides = tuple([*SETTINGS, "task.skip=1", "task.max=4"])
     src = tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
@@ -107,16 +108,22 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
     assert notes[("Tz / Smoothed Vanilla SmallCNN", "Benign Acc")] == "shards [1] of task.num_shards=2 not finished"
     assert notes[("Tz / Smoothed Augmented SmallCNN", "Benign Acc")] == "no finished train run for its model"
-    for task in ("smooth", "attack"):
+    for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=1"], f"{task}-1")
     src = tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
     df = tables.certified_table(src)
-    smooth = pd.concat([read_log(out / "runs" / f"smooth-{i}" / "smooth.tsv", ["idx"]) for i in (0, 1)])
-    attack = pd.concat([read_log(out / "runs" / f"attack-{i}" / "attack.tsv", ["idx"]) for i in (0, 1)])
-    assert len(smooth) == len(attack) == 4
+    smooth, attack, certify = (
+        pd.concat([read_log(out / "runs" / f"{task}-{i}" / f"{task}.tsv", ["idx"]) for i in (0, 1)]) for task in TASKS
+    )
+    assert len(smooth) == len(attack) == len(certify) == 4
     row = df.loc[("Tz", "Smoothed Vanilla SmallCNN")]
     assert row["Benign Acc"] == pytest.approx(smooth.correct.mean())
     assert row["5-pert Emp. Acc"] == pytest.approx((attack.smoothed_robust == 1).mean())
+    certified = (certify.correct == 1) & (certify.radius >= 0.1) & (certify.predict >= 0)
+    assert row["Certified Acc"] == pytest.approx(certified.mean())
+    radii, acc = tables.curves(src)["tz"]["Smoothed Vanilla SmallCNN"]  # the figure's curve: the merged log's
+    assert acc[0] == pytest.approx(((certify.correct == 1) & (certify.predict >= 0)).mean())
+    assert radii[-1] == certify.radius[certify.correct == 1].max()
     runs = src.sources("table3_certified").set_index(["row", "column"])["runs"]
     assert len(runs[("Tz / Smoothed Vanilla SmallCNN", "Benign Acc")].split()) == 2
 
@@ -171,8 +178,9 @@ def test_sweep_table_from_a_parents_children(store):
 
 
 def test_tables_task_writes_every_table_its_sources_and_the_figure(store):
+    quoted = ",".join(f"'{o}'" for o in SETTINGS)
     result = run_task(
-        compose_cfg(["task=tables", "task.experiment=demo", "task.overrides=[" + ",".join(f"'{o}'" for o in SETTINGS) + "]"], store),
+        compose_cfg(["task=tables", "task.experiment=demo", f"task.overrides=[{quoted}]"], store),
         store / "runs" / "tables",
     )
     out = Path(result["tables"])

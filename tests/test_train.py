@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from mrcert.__main__ import run_task
-from mrcert.__main__ import bind
+from mrcert.__main__ import bind, run_task
 from mrcert.checkpoints import load_classifier, local_checkpoint
 from mrcert.data.datasets import Augment, load
 from mrcert.data.holdout import validation_split
@@ -146,7 +145,7 @@ def test_model_selection_uses_held_out_training_poses_never_the_test_poses(tmp_p
     assert len(history) == 3 and best["val_acc"] == max(history) and history[best["epoch"]] == max(history)
     split = validation_split(np.repeat(np.arange(4), 10), 0.25, seed=5)
     again = validation_split(np.repeat(np.arange(4), 10), 0.25, seed=5)
-    assert all((a == b).all() for a, b in zip(split, again))  # seeded
+    assert all((a == b).all() for a, b in zip(split, again, strict=True))  # seeded
     assert [int((np.repeat(np.arange(4), 10)[split[1]] == c).sum()) for c in range(4)] == [2, 2, 2, 2]  # per class
     assert not set(split[0]) & set(split[1]) and len(split[0]) + len(split[1]) == 40
 

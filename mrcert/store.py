@@ -1,0 +1,143 @@
+"""The MLflow store, made safe against kills, races and outages.
+
+* A new SQLite store comes into existence atomically: it is built complete in a temporary
+  file and renamed into place, under a cross-process lock, so a kill during its creation
+  leaves no half-made store and jobs started together on a new store never race to create
+  its schema. A half-made store from an older version is detected and explained in one line.
+* A tracking server is probed once, with a short timeout, before any work: an unreachable
+  one fails in seconds with a line naming its URI (MLflow's own retries stay on for
+  transient errors during a run).
+* :class:`FileLock` is the cross-process lock: ``flock``, released by the kernel when its
+  process dies, so a killed process never leaves a stale lock.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import functools
+import os
+import socket
+import sqlite3
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from mrcert.errors import MrcertError
+
+PROBE_TIMEOUT_S = 5.0
+
+
+class FileLock:
+    """An exclusive ``flock`` on ``path`` (created if missing), naming its holder inside."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self._file = None
+
+    def acquire(self, blocking: bool = True) -> bool:
+        """Take the lock; with ``blocking=False``, False (and nothing held) when another live
+        process holds it."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        f = open(self.path, "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+        except OSError:
+            f.close()
+            return False
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        f.flush()
+        self._file = f
+        return True
+
+    def holder(self) -> str:
+        try:
+            return self.path.read_text().strip() or "unknown"
+        except OSError:
+            return "unknown"
+
+    def release(self) -> None:
+        if self._file is not None:
+            fcntl.flock(self._file, fcntl.LOCK_UN)
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> FileLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+@functools.cache
+def schema_head() -> str:
+    """The schema revision this MLflow writes (alembic head)."""
+    from mlflow.store.db.utils import _get_latest_schema_revision
+
+    return _get_latest_schema_revision()
+
+
+def schema_version(db: Path) -> str | None:
+    """The alembic revision stamped in a SQLite store, or None when it has none."""
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as conn:
+            row = conn.execute("SELECT version_num FROM alembic_version").fetchone()
+    except sqlite3.Error:
+        return None
+    return row[0] if row else None
+
+
+def check_sqlite_store(db: Path) -> None:
+    """Raise a one-line error when ``db`` is not a complete store of this MLflow's schema."""
+    version = schema_version(db)
+    if version == schema_head():
+        return
+    uri = f"sqlite:///{db}"
+    raise MrcertError(
+        f"the MLflow store {db} is incomplete or of another MLflow version (schema {version or 'missing'}, "
+        f"expected {schema_head()}): if a first run was killed while creating it, move it aside "
+        f"(mv {db} {db}.broken) and rerun; if an older MLflow made it, back it up and run: mlflow db upgrade {uri}"
+    )
+
+
+def ensure_sqlite_store(db: Path) -> None:
+    """Create the SQLite store ``db`` atomically if it does not exist, then check it."""
+    db = Path(db)
+    if not db.exists():
+        with FileLock(db.with_name(f".{db.name}.lock")):
+            if not db.exists():
+                _build(db)
+    check_sqlite_store(db)
+
+
+def _build(db: Path) -> None:
+    """Build a complete store in a temporary file and rename it into place (lock held)."""
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
+
+    for stale in db.parent.glob(f".{db.name}.tmp-*"):  # left by a killed builder: we hold the lock
+        stale.unlink(missing_ok=True)
+    tmp = db.with_name(f".{db.name}.tmp-{os.getpid()}")
+    store = SqlAlchemyStore(f"sqlite:///{tmp}", default_artifact_root=str(db.parent / "mlartifacts"))
+    store.engine.dispose()
+    os.replace(tmp, db)
+
+
+@functools.cache
+def probe_server(uri: str) -> None:
+    """Fail in seconds, naming ``uri``, when no MLflow tracking server answers there."""
+    url = uri.rstrip("/") + "/health"
+    try:
+        with urllib.request.urlopen(url, timeout=PROBE_TIMEOUT_S) as response:
+            if response.status == 200:
+                return
+            reason = f"HTTP {response.status}"
+    except urllib.error.HTTPError as exc:
+        reason = f"HTTP {exc.code}"
+    except (urllib.error.URLError, OSError) as exc:
+        reason = str(getattr(exc, "reason", exc))
+    raise MrcertError(
+        f"cannot reach the MLflow tracking server at {uri} ({reason}); start it (e.g. `make server`) "
+        "or point tracking.uri at a running one"
+    )
