@@ -18,6 +18,7 @@ from mrcert import config as mrcert_config
 from mrcert.checkpoints import bind_checkpoint
 from mrcert.errors import MrcertError
 from mrcert.identity import RunIdentity, identify
+from mrcert.inputs import check_inputs
 from mrcert.tasks import TASKS, RunContext
 from mrcert.tracking import fail_parent, find_runs, finished_run, task_run
 
@@ -25,8 +26,10 @@ log = logging.getLogger("mrcert")
 
 
 def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
-    """``cfg`` bound to its inputs (the one checkpoint an evaluation uses) and its run identity."""
+    """``cfg`` bound to its inputs (the one checkpoint an evaluation uses) and its run identity.
+    Every file input is checked here, before any data is prepared or any run is created."""
     task = TASKS[cfg.task.name]
+    check_inputs(cfg, task.identity)
     train_run = None
     if task.identity.needs_model:
 

@@ -118,23 +118,66 @@ def local_checkpoint(ref: str) -> Path:
         raise MrcertError(f"model.checkpoint={ref!r} cannot be fetched from MLflow: {exc}") from None
 
 
+REQUIRED_KEYS = ("model", "arch", "num_classes")
+
+
+def read_checkpoint(path: Path | str) -> dict[str, Any]:
+    """The state a ``task=train`` checkpoint holds, or a one-line error saying it is not one."""
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # not a torch file, truncated, or holding objects other than tensors
+        raise MrcertError(
+            f"{str(path)!r} is not a mrcert checkpoint (a file written by task=train): torch cannot read it "
+            "as tensors and plain values (not a PyTorch file, truncated, or holding other objects)"
+        ) from None
+    if not isinstance(state, dict) or any(k not in state for k in REQUIRED_KEYS):
+        raise MrcertError(
+            f"{str(path)!r} is not a mrcert checkpoint (a file written by task=train): "
+            f"it lacks {', '.join(k for k in REQUIRED_KEYS if not isinstance(state, dict) or k not in state)}"
+        )
+    return state
+
+
+def _differences(saved: Any, wanted: Any, prefix: str) -> list[str]:
+    """``key=saved`` vs ``key=wanted`` for every leaf where two model configs differ."""
+    from mrcert.identity import flatten
+
+    a, b = flatten(saved, prefix), flatten(wanted, prefix)
+    return [f"{k}={a.get(k, '(unset)')!r} (checkpoint) vs {b.get(k, '(unset)')!r} (asked for)"
+            for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]  # fmt: skip
+
+
 def load_classifier(cfg: DictConfig, num_classes: int, device):
     """The trained base classifier (``nn.Module``) of the bound ``cfg.model.checkpoint`` in eval
-    mode on ``device``."""
-    import torch
+    mode on ``device``. A checkpoint of another architecture, class count or ``model.net``
+    config is refused with a message naming both values."""
+    from omegaconf import OmegaConf
 
     from mrcert.models import build_model, for_inference
 
     path = local_checkpoint(str(cfg.model.checkpoint))
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise MrcertError(f"cannot read checkpoint {str(path)!r}: {exc}") from None
+    state = read_checkpoint(path)
     if state.get("arch") != cfg.model.arch or state.get("num_classes") != num_classes:
         raise MrcertError(
             f"checkpoint {str(path)!r} holds a {state.get('arch')} for {state.get('num_classes')} "
             f"classes, but model={cfg.model.arch} with {num_classes} classes was asked for"
         )
+    wanted = OmegaConf.to_container(cfg.model.net, resolve=True)
+    saved = state.get("model_config")
+    if saved is not None and saved != wanted:
+        raise MrcertError(
+            f"checkpoint {str(path)!r} was trained with another model: "
+            + "; ".join(_differences(saved, wanted, "model.net"))
+        )
     model = build_model(cfg.model, num_classes)
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:  # an older checkpoint without model_config, of another shape
+        first = str(exc).strip().splitlines()
+        raise MrcertError(
+            f"checkpoint {str(path)!r} does not fit model={cfg.model.arch} with model.net={wanted}: "
+            f"{first[1].strip() if len(first) > 1 else first[0]}"
+        ) from None
     return for_inference(model, device)

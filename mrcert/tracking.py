@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -209,6 +211,33 @@ def _resumable(cfg: DictConfig, ident: RunIdentity):
     return None, None
 
 
+def adopt(launch_dir: Path, run_dir: Path) -> None:
+    """Move what this launch wrote so far (Hydra's log and ``.hydra`` folder) from its own
+    folder into ``run_dir/resumed/<time>/``, point the open log files there, and remove the
+    launch folder: a resumed run keeps every process's log, and leaves no orphan folder."""
+    launch_dir, run_dir = launch_dir.resolve(), run_dir.resolve()
+    if launch_dir == run_dir or not launch_dir.is_dir():
+        return
+    target = run_dir / "resumed" / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_{os.getpid()}"
+    target.mkdir(parents=True, exist_ok=True)
+    handlers = [
+        h
+        for h in logging.getLogger().handlers
+        if isinstance(h, logging.FileHandler) and Path(h.baseFilename).resolve().is_relative_to(launch_dir)
+    ]
+    for h in handlers:
+        h.acquire()
+        h.close()
+    for item in launch_dir.iterdir():
+        shutil.move(str(item), str(target / item.name))
+    for h in handlers:
+        h.baseFilename = str(target / Path(h.baseFilename).resolve().relative_to(launch_dir))
+        h.mode = "a"
+        h.stream = h._open()
+        h.release()
+    launch_dir.rmdir()
+
+
 @contextmanager
 def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[Tracker]:
     """An MLflow run around one task: params, tags (the run and cell keys, the model used) and
@@ -223,8 +252,8 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
 
     output_dir.mkdir(parents=True, exist_ok=True)
     resolved = output_dir / "resolved_config.yaml"
-    resolved.write_text(to_yaml(cfg))
     if not cfg.tracking.enabled:
+        resolved.write_text(to_yaml(cfg))
         yield Tracker(output_dir)
         return
     info = _parent_info() or {}
@@ -233,10 +262,13 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
     previous, lock = _resumable(cfg, ident)
     if previous is not None:
-        output_dir = Path(previous.data.tags["mrcert.output_dir"])
-        log.info("resuming MLflow run %s from %s", previous.info.run_id, output_dir)
+        resumed = Path(previous.data.tags["mrcert.output_dir"])
+        log.info("resuming MLflow run %s from %s", previous.info.run_id, resumed)
+        adopt(output_dir, resumed)
+        output_dir = resumed
         run_ctx = mlflow.start_run(run_id=previous.info.run_id)
     else:
+        resolved.write_text(to_yaml(cfg))
         lock = run_lock(output_dir)
         if not lock.acquire(blocking=False):
             raise MrcertError(f"the run folder {output_dir} is held by another process ({lock.holder()})")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,13 +41,22 @@ def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """xyz (N, 3) float64 and RGB (N, 3) float32 in [0, 1] of a ``.ply`` / ``.pcd`` file.
 
     Colours may be stored in [0, 1] or 0-255 (integer or float); anything else is an error,
-    as are a missing file, no points and NaN or infinite values. No colours: mid grey.
+    as are a missing file, no points and NaN or infinite values. No colours: mid grey. The
+    last file read is kept (callers must not write into the arrays), so checking a file
+    before a run costs no second read.
     """
-    import open3d as o3d
-
     path = Path(path)
     if not path.is_file():
         raise MrcertError(f"point cloud file {str(path)!r} does not exist")
+    stat = path.stat()
+    return _read_point_cloud(str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=1)
+def _read_point_cloud(path_str: str, size: int, mtime_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    import open3d as o3d
+
+    path = Path(path_str)
     if path.suffix.lower() not in (".ply", ".pcd"):
         raise MrcertError(f"point cloud file {str(path)!r} has suffix {path.suffix!r}; allowed: .ply, .pcd")
     pcd = o3d.t.io.read_point_cloud(str(path))

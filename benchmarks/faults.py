@@ -1,0 +1,137 @@
+"""Fault injection: random SIGKILLs across training and certification, then the same command.
+
+Each trial starts from an empty outputs folder (so kills also land before and during the
+store's creation), runs one tiny job (train with ``task.resume=true``, or certify), SIGKILLs
+it 1-3 times at random moments, then runs the same command to the end. It then checks the
+result against an uninterrupted reference computed first: the certify rows (all but the two
+timing columns) or the final weights must be identical, no test image may appear twice, and
+the store must hold exactly one run. Prints the totals, e.g.
+``20 kills, 0 results lost, 0 duplicate rows, 0 extra runs``.
+
+Usage: python benchmarks/faults.py [--kills 20] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = [
+    "data=metaroom_synth",
+    "model=small_cnn",
+    "model.net.width=8",
+    "data.classes=[can,mug,apple]",
+    "data.room_density=0.03",
+    "data.density=0.01",
+    "data.protocol.train.per_class=16",
+]
+TRAIN = [*TINY, "task=train", "train.epochs=6", "train.batch_size=8", "task.resume=true"]
+
+
+def certify(checkpoint: Path) -> list[str]:
+    return [
+        *TINY,
+        "task=certify",
+        "task.n0=8",
+        "task.n=300",
+        "task.max=6",
+        "task.skip=1",
+        f"model.checkpoint={checkpoint}",
+    ]
+
+
+def mrcert(args: list[str], outputs: Path, env: dict) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "mrcert", *args],
+        cwd=ROOT,
+        env=env | {"MRCERT_OUTPUTS": str(outputs)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def finish(args: list[str], outputs: Path, env: dict) -> float:
+    t0 = time.time()
+    proc = mrcert(args, outputs, env)
+    _, err = proc.communicate()
+    if proc.returncode != 0:
+        raise SystemExit(f"mrcert {' '.join(args)} failed:\n{err[-3000:]}")
+    return time.time() - t0
+
+
+def outcome(kind: str, outputs: Path):
+    """(result, duplicate rows, runs in the store) of a finished trial."""
+    import mlflow
+    import torch
+
+    from mrcert.certify_log import read_log
+
+    mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+    runs = mlflow.search_runs(search_all_experiments=True, output_format="list")
+    if kind == "train":
+        (last,) = outputs.glob("runs/train/*/last.pt")
+        return torch.load(last, weights_only=True)["model"], 0, runs
+    (log,) = outputs.glob("runs/certify/*/certify.tsv")
+    rows = read_log(log)
+    return rows.drop(columns=["time", "seconds"]), int(rows["idx"].duplicated().sum()), runs
+
+
+def same(kind: str, a, b) -> bool:
+    import torch
+
+    if kind == "train":
+        return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    return a.equals(b)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--kills", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    rng = random.Random(args.seed)
+    env = os.environ | {"OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads)}
+    work = Path(tempfile.mkdtemp(prefix="mrcert-faults-"))
+    try:
+        finish([*TRAIN, "train.epochs=1"], work / "model", env)
+        (checkpoint,) = (work / "model").glob("runs/train/*/best.pt")
+        jobs = {"train": TRAIN, "certify": certify(checkpoint)}
+        reference, duration = {}, {}
+        for kind, job in jobs.items():
+            duration[kind] = finish(job, work / f"reference-{kind}", env)
+            reference[kind] = outcome(kind, work / f"reference-{kind}")[0]
+        kills = lost = duplicates = extra = trials = 0
+        while kills < args.kills:
+            kind = ("train", "certify")[trials % 2]
+            outputs = work / f"trial-{trials}"
+            for _ in range(min(rng.randint(1, 3), args.kills - kills)):
+                proc = mrcert(jobs[kind], outputs, env)
+                time.sleep(rng.uniform(0.5, duration[kind]))
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+                kills += 1
+            finish(jobs[kind], outputs, env)
+            result, dup, runs = outcome(kind, outputs)
+            lost += not same(kind, result, reference[kind])
+            duplicates += dup
+            extra += len(runs) - 1
+            trials += 1
+            print(f"trial {trials} ({kind}): {kills} kills so far", flush=True)
+        print(f"{kills} kills, {lost} results lost, {duplicates} duplicate rows, {extra} extra runs ({trials} trials)")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

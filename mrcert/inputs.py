@@ -1,0 +1,63 @@
+"""Every file a run reads, checked before the run exists.
+
+A missing or unreadable checkpoint, point cloud, poses file or imported log stops the command
+in seconds with one line naming the key and the file, before any data is prepared and before
+an MLflow run is created (so no FAILED run is left behind). The keys checked are the ones a
+task's identity declares as files (:class:`mrcert.identity.Identity`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from mrcert.errors import MrcertError
+from mrcert.identity import Identity
+
+
+def _checkpoint(path: Path) -> None:
+    from mrcert.checkpoints import read_checkpoint
+
+    read_checkpoint(path)
+
+
+def _cloud(path: Path) -> None:
+    from mrcert.scenes.scene import read_point_cloud
+
+    if path.is_file():
+        read_point_cloud(path)
+
+
+def _poses(path: Path) -> None:
+    from mrcert.data.custom import read_poses
+
+    read_poses(path)
+
+
+def _log(path: Path) -> None:
+    from mrcert.certify_log import read_log
+
+    read_log(path)
+
+
+CHECKS: dict[str, Callable[[Path], None]] = {
+    "model.checkpoint": _checkpoint,
+    "data.path": _cloud,  # a cloud file; the released MetaRoom is a folder, checked when opened
+    "data.poses": _poses,
+    "task.path": _log,
+}
+
+
+def check_inputs(cfg: DictConfig, identity: Identity) -> None:
+    """Raise a one-line :class:`MrcertError` for the first file input of ``cfg`` that is missing
+    or unreadable (``runs:/`` URIs are checked against the store when bound)."""
+    for key in identity.files:
+        value = OmegaConf.select(cfg, key, default=None)
+        if value is None or value == "???" or ":/" in str(value):
+            continue
+        path = Path(str(value))
+        if not path.exists():
+            raise MrcertError(f"{key}={str(value)!r} does not exist")
+        CHECKS.get(key, lambda p: None)(path)

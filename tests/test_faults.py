@@ -1,0 +1,229 @@
+"""The store and the job runner survive kills, races and outages; bad inputs fail early."""
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import pandas as pd
+import pytest
+import torch
+
+from mrcert.__main__ import run_task
+from mrcert.certify_log import read_log
+from mrcert.errors import MrcertError
+from mrcert.store import FileLock
+from tests.conftest import ROOT, TINY, compose_cfg, kill_when, run_cli
+
+TIMING = ["time", "seconds"]
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    """Two different tiny models as files: ``a`` (best.pt) and ``b`` (last.pt of a longer run)."""
+    out = tmp_path_factory.mktemp("models")
+    run_task(compose_cfg([*TINY, "task=train", "train.epochs=1", "train.batch_size=8"], out), out / "a")
+    run_task(compose_cfg([*TINY, "task=train", "train.epochs=3", "train.batch_size=8"], out), out / "b")
+    return {"a": out / "a" / "best.pt", "b": out / "b" / "last.pt"}
+
+
+def certify_args(checkpoint: Path, n: int = 200) -> list[str]:
+    return [
+        *TINY,
+        "task=certify",
+        "task.n0=8",
+        f"task.n={n}",
+        "task.max=4",
+        "task.skip=1",
+        f"model.checkpoint={checkpoint}",
+    ]
+
+
+@pytest.fixture(scope="module")
+def reference(checkpoints, tmp_path_factory) -> dict[str, pd.DataFrame]:
+    """The rows an uninterrupted certification gives with each model."""
+    rows = {}
+    for name, path in checkpoints.items():
+        out = tmp_path_factory.mktemp(f"reference-{name}")
+        run_task(compose_cfg(certify_args(path), out), out / "run")
+        rows[name] = read_log(out / "run" / "certify.tsv").drop(columns=TIMING)
+    return rows
+
+
+def store_runs(out: Path, where: str = "") -> list:
+    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
+    return mlflow.search_runs(search_all_experiments=True, filter_string=where, output_format="list")
+
+
+def certify_logs(out: Path) -> list[Path]:
+    return sorted(out.glob("runs/certify/*/certify.tsv"))
+
+
+def started_for(seconds: float):
+    t0 = time.time()
+    return lambda: time.time() - t0 > seconds
+
+
+@pytest.mark.parametrize(
+    "phase", [pytest.param("before", marks=pytest.mark.slow), "during", pytest.param("after", marks=pytest.mark.slow)]
+)
+def test_a_kill_at_any_phase_of_a_first_run_is_finished_by_the_same_command(phase, checkpoints, reference, tmp_path):
+    args = certify_args(checkpoints["a"])
+    db = tmp_path / "mlflow.db"
+    building = lambda: any(tmp_path.glob(".mlflow.db.tmp-*"))  # noqa: E731
+    ready = {
+        "before": started_for(1.0),  # the interpreter is still importing: no store yet
+        "during": building,
+        "after": lambda: any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)),
+    }[phase]
+    kill_when(args, tmp_path, ready)
+    if phase == "before":
+        assert not db.exists()
+    if phase == "during":
+        assert building() and not db.exists()  # killed while the store was being built
+    if phase == "after":
+        assert db.exists()
+    done = run_cli(args, tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    (run,) = store_runs(tmp_path)
+    assert run.info.status == "FINISHED"
+    (log,) = certify_logs(tmp_path)  # one run folder: a resume adopts the new launch's folder
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), reference["a"])
+
+
+def test_a_half_made_store_is_explained_in_one_line(tmp_path):
+    import sqlalchemy
+    from mlflow.store.tracking.dbmodels.initial_models import Base
+
+    db = tmp_path / "mlflow.db"
+    engine = sqlalchemy.create_engine(f"sqlite:///{db}")
+    Base.metadata.create_all(engine)  # the tables, but no schema stamp: what a kill mid-creation leaves
+    engine.dispose()
+    proc = run_cli(["task=render", "data=testscene", "data.density=0.05", "task.num=2", "task.axes=[tx]"], tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert f"the MLflow store {db} is incomplete" in line and f"mv {db} {db}.broken" in line
+
+
+def test_independent_jobs_started_together_on_a_new_store_all_finish(tmp_path):
+    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path)}
+    jobs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "mrcert",
+                "task=render",
+                "data=testscene",
+                "data.density=0.05",
+                "task.num=2",
+                f"task.axes=[{axis}]",
+            ],
+            cwd=ROOT,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        for axis in ("tx", "ty", "rz", "rx")
+    ]
+    errors = [job.communicate(timeout=300)[1] for job in jobs]
+    assert [job.returncode for job in jobs] == [0, 0, 0, 0], "\n".join(e[-1500:] for e in errors)
+    runs = store_runs(tmp_path)
+    assert len(runs) == 4 and all(r.info.status == "FINISHED" for r in runs)
+    assert len({r.info.experiment_id for r in runs}) == 1
+
+
+def test_resume_never_mixes_two_models_in_one_run(checkpoints, reference, tmp_path):
+    first = certify_args(checkpoints["a"])
+    kill_when(first, tmp_path, lambda: any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)))
+    (killed_log,) = certify_logs(tmp_path)
+    rows_before = killed_log.read_text()
+    run_task(compose_cfg(certify_args(checkpoints["b"]), tmp_path), tmp_path / "runs" / "certify" / "other")
+    assert killed_log.read_text() == rows_before  # another model: a new run, not the killed one
+    (finished,) = store_runs(tmp_path, "attributes.status = 'FINISHED'")
+    pd.testing.assert_frame_equal(
+        read_log(Path(finished.data.tags["mrcert.output_dir"]) / "certify.tsv").drop(columns=TIMING), reference["b"]
+    )
+    again = run_cli(first, tmp_path)  # the first model's command resumes its own run
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert len(store_runs(tmp_path)) == 2
+    pd.testing.assert_frame_equal(read_log(killed_log).drop(columns=TIMING), reference["a"])
+    assert list(killed_log.parent.glob("resumed/*/*.log"))  # the resuming process's log is kept with the run
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_an_unreachable_tracking_server_fails_in_seconds(tmp_path):
+    uri = f"http://127.0.0.1:{free_port()}"
+    t0 = time.time()
+    proc = run_cli(["task=render", "data=testscene", "tracking=server", f"tracking.uri={uri}"], tmp_path)
+    assert time.time() - t0 < 30
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert f"cannot reach the MLflow tracking server at {uri}" in proc.stderr
+
+
+def test_bad_input_files_fail_before_any_run_exists(checkpoints, tmp_path):
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(os.urandom(2000))
+    cloud, poses, log, scan = tmp_path / "bad.ply", tmp_path / "bad.json", tmp_path / "bad.tsv", tmp_path / "scan.ply"
+    cloud.write_text("ply\nformat nonsense\n")
+    poses.write_text("{not json")
+    log.write_text("a\tb\n1\t2\n")
+    _write_cloud(scan)
+    cases = [
+        (certify_args(tmp_path / "missing.pt"), "model.checkpoint=.*missing.pt' does not exist"),
+        (certify_args(garbage), "is not a mrcert checkpoint"),
+        (["task=render", "data=pointcloud", f"data.path={cloud}"], "has no points"),
+        (["task=train", "data=custom", f"data.path={tmp_path / 'none.ply'}", f"data.poses={poses}"], "does not exist"),
+        (["task=train", "data=custom", f"data.path={scan}", f"data.poses={poses}"], "is not valid UTF-8 JSON"),
+        (["task=import", f"task.path={log}"], "lacks the columns"),
+    ]
+    for args, message in cases:
+        with pytest.raises(MrcertError, match=message) as info:
+            run_task(compose_cfg(args, tmp_path), tmp_path / "runs" / "x")
+        assert "weights_only" not in str(info.value)
+    assert not (tmp_path / "mlflow.db").exists() or store_runs(tmp_path) == []  # no run, not even a FAILED one
+    t0 = time.time()
+    proc = run_cli(certify_args(garbage), tmp_path)  # and on the command line: one line, in seconds
+    assert time.time() - t0 < 30 and proc.returncode == 2 and "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("mrcert: error: ") and "is not a mrcert checkpoint" in last
+
+
+def _write_cloud(path: Path) -> None:
+    import numpy as np
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(np.random.default_rng(0).uniform(-1, 1, (100, 3)))
+    o3d.io.write_point_cloud(str(path), pcd)
+
+
+def test_a_checkpoint_of_another_model_config_is_named(checkpoints, tmp_path):
+    cfg = compose_cfg([*certify_args(checkpoints["a"]), "model.net.width=16"], tmp_path)
+    from mrcert.checkpoints import load_classifier
+
+    with pytest.raises(MrcertError, match=r"trained with another model: model.net.width=8 \(checkpoint\) vs 16"):
+        load_classifier(cfg, 3, torch.device("cpu"))
+
+
+def test_a_file_lock_is_exclusive_and_dies_with_its_process(tmp_path):
+    path = tmp_path / "x.lock"
+    code = f"from mrcert.store import FileLock; import time; lock = FileLock('{path}'); lock.acquire(); "
+    code += "print('held', flush=True); time.sleep(60)"
+    holder = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    lock = FileLock(path)
+    assert not lock.acquire(blocking=False) and f"pid {holder.pid}" in lock.holder()
+    holder.kill()
+    holder.wait()
+    assert lock.acquire(blocking=False)
+    lock.release()
