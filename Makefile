@@ -9,9 +9,11 @@ PORT ?= 5000
 OUTPUTS ?= outputs
 # Threads for tests and benchmarks (the reference machine has 2 cores).
 THREADS ?= 2
+# Device for the benchmarks: cpu, or cuda on a machine with a GPU.
+DEVICE ?= cpu
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo reproduce-tables test test-full bench ui server clean lint
+.PHONY: help install demo reproduce-tables test test-full test-gpu bench ui server clean lint
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -44,9 +46,12 @@ test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)
 test-full: $(STAMP) ## every test, the slow ones too
 	OMP_NUM_THREADS=$(THREADS) NUMBA_NUM_THREADS=$(THREADS) $(PY) -m pytest -q -m ''
 
-bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run
-	$(PY) benchmarks/projection.py --threads $(THREADS)
-	$(PY) benchmarks/certify.py --threads $(THREADS)
+test-gpu: $(STAMP) ## the CUDA tests (skipped without a GPU)
+	OMP_NUM_THREADS=$(THREADS) NUMBA_NUM_THREADS=$(THREADS) $(PY) -m pytest -q -m cuda -rs
+
+bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run (DEVICE=cuda for the GPU path)
+	$(PY) benchmarks/projection.py --threads $(THREADS) --device $(DEVICE)
+	$(PY) benchmarks/certify.py --threads $(THREADS) --device $(DEVICE)
 
 ui: $(STAMP) ## MLflow UI on the project's store (http://127.0.0.1:5000, PORT=... to change)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow.db \

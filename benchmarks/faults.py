@@ -1,8 +1,9 @@
 """Fault injection: random SIGKILLs across training and certification, then the same command.
 
 Each trial starts from an empty outputs folder (so kills also land before and during the
-store's creation), runs one tiny job (train with ``task.resume=true``, or certify), SIGKILLs
-it 1-3 times at random moments, then runs the same command to the end. It then checks the
+store's creation), runs one tiny job (train with ``task.resume=true``, or certify; both with
+``skip_finished=true``, as in a reproduction), SIGKILLs it 1-3 times at random moments (a
+kill counts only when the process was still running), then runs the same command to the end. It then checks the
 result against an uninterrupted reference computed first: the certify rows (all but the two
 timing columns) or the final weights must be identical, no test image may appear twice, and
 the store must hold exactly one run. Prints the totals, e.g.
@@ -34,7 +35,7 @@ TINY = [
     "data.density=0.01",
     "data.protocol.train.per_class=16",
 ]
-TRAIN = [*TINY, "task=train", "train.epochs=6", "train.batch_size=8", "task.resume=true"]
+TRAIN = [*TINY, "task=train", "train.epochs=6", "train.batch_size=8", "task.resume=true", "skip_finished=true"]
 
 
 def certify(checkpoint: Path) -> list[str]:
@@ -45,6 +46,7 @@ def certify(checkpoint: Path) -> list[str]:
         "task.n=300",
         "task.max=6",
         "task.skip=1",
+        "skip_finished=true",
         f"model.checkpoint={checkpoint}",
     ]
 
@@ -78,17 +80,21 @@ def outcome(kind: str, outputs: Path):
 
     mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
     runs = mlflow.search_runs(search_all_experiments=True, output_format="list")
+    finished = [r for r in runs if r.info.status == "FINISHED"]
+    if len(finished) != 1:
+        return None, 0, runs
+    folder = Path(finished[0].data.tags["mrcert.output_dir"])
     if kind == "train":
-        (last,) = outputs.glob("runs/train/*/last.pt")
-        return torch.load(last, weights_only=True)["model"], 0, runs
-    (log,) = outputs.glob("runs/certify/*/certify.tsv")
-    rows = read_log(log)
+        return torch.load(folder / "last.pt", weights_only=True)["model"], 0, runs
+    rows = read_log(folder / "certify.tsv")
     return rows.drop(columns=["time", "seconds"]), int(rows["idx"].duplicated().sum()), runs
 
 
 def same(kind: str, a, b) -> bool:
     import torch
 
+    if a is None:
+        return False
     if kind == "train":
         return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     return a.equals(b)
@@ -99,6 +105,7 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--keep", action="store_true", help="keep the work folder (printed) for inspection")
     args = ap.parse_args()
     rng = random.Random(args.seed)
     env = os.environ | {"OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads)}
@@ -118,19 +125,25 @@ def main() -> None:
             for _ in range(min(rng.randint(1, 3), args.kills - kills)):
                 proc = mrcert(jobs[kind], outputs, env)
                 time.sleep(rng.uniform(0.5, duration[kind]))
-                proc.send_signal(signal.SIGKILL)
+                if proc.poll() is None:  # still running: a real kill
+                    proc.send_signal(signal.SIGKILL)
+                    kills += 1
                 proc.wait()
-                kills += 1
             finish(jobs[kind], outputs, env)
             result, dup, runs = outcome(kind, outputs)
-            lost += not same(kind, result, reference[kind])
+            ok = same(kind, result, reference[kind])
+            lost += not ok
             duplicates += dup
             extra += len(runs) - 1
             trials += 1
-            print(f"trial {trials} ({kind}): {kills} kills so far", flush=True)
+            states = ", ".join(f"{r.info.run_id[:8]} {r.info.status}" for r in runs)
+            print(f"trial {trials} ({kind}, {outputs}): {kills} kills; runs: {states}; same: {ok}", flush=True)
         print(f"{kills} kills, {lost} results lost, {duplicates} duplicate rows, {extra} extra runs ({trials} trials)")
     finally:
-        shutil.rmtree(work, ignore_errors=True)
+        if args.keep:
+            print(f"work folder kept: {work}")
+        else:
+            shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from typing import Any
 
 from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 
-from mrcert.errors import ConfigError
+from mrcert.errors import ConfigError, MrcertError
 from mrcert.geometry import AXES
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
@@ -167,6 +167,14 @@ def validate(cfg: DictConfig) -> None:
     for axis, value in extent.items():
         if axis not in AXES or not _number(value) or value < 0:
             raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")
+    motion = data.get("motion", {})
+    if motion.get("axes"):
+        from mrcert.smoothing import licensed
+
+        try:
+            licensed(tuple(motion["axes"]), tuple(motion.get("sigmas") or ()))
+        except (MrcertError, ValueError) as exc:
+            raise ConfigError("motion.axes", motion["axes"], str(exc)) from None
     device = data.get("device", "auto")
     if not (
         device in ("auto", "cpu", "cuda")

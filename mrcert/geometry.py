@@ -1,4 +1,4 @@
-"""Rigid camera motions in the conventions of SPEC section 1.
+"""Rigid camera motions in the conventions of docs/method.md §1.
 
 A motion is a 6-vector ``(tx, ty, tz, rx, ry, rz)``: a translation and a rotation vector
 ``theta * n`` with ``R = exp(theta n^)``. It acts in the camera's own frame:
@@ -41,7 +41,7 @@ def rotvec_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula ``R = cos(t) I + sin(t) n^ + (1 - cos(t)) n n^T``.
 
     Written in this form so that a rotation about a coordinate axis has exactly the entries
-    ``cos``, ``sin`` and 0 of SPEC section 1 (no rounding from ``1 - (1 - cos)``).
+    ``cos``, ``sin`` and 0 of docs/method.md §1 (no rounding from ``1 - (1 - cos)``).
     """
     rotvec = torch.as_tensor(rotvec, dtype=torch.float64)
     theta = torch.linalg.vector_norm(rotvec, dim=-1, keepdim=True)

@@ -1,7 +1,7 @@
 """Base classifiers: any ``nn.Module`` named by ``model.net._target_``, behind a fixed normaliser.
 
 Inputs are images in [0, 1] (what the projection renders); the first layer normalises them
-with mean 0.5 and std 0.5 per channel (SPEC section 2), so smoothing happens before
+with mean 0.5 and std 0.5 per channel (docs/method.md §2), so smoothing happens before
 normalisation and every architecture sees the same inputs.
 """
 

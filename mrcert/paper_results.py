@@ -1,4 +1,4 @@
-"""The numbers the paper reports (CoRL 2022; SPEC section 5), shown beside ours with
+"""The numbers the paper reports (CoRL 2022; docs/method.md §5), shown beside ours with
 ``tables.show_paper=true``. Keys: (axis, arch, variant) -> values; MetaRoom, 120 test images.
 """
 

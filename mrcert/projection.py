@@ -1,10 +1,15 @@
 """The projection ``O(V, alpha)`` of a coloured point cloud under camera motions (paper Def. 2).
 
-Rule (SPEC section 2): a point with camera coordinates ``P`` is moved to ``P' = R^T (P - t)``,
+Rule (docs/method.md §2): a point with camera coordinates ``P`` is moved to ``P' = R^T (P - t)``,
 lands on column ``u = floor(fx X'/Z' + cx)`` and row ``v = floor(fy Y'/Z' + cy)`` when
 ``Z' > 0``, ``0 <= u < W`` and ``0 <= v < H``, and each pixel takes the colour of its point of
 minimum depth ``Z'``; among equal depths the lowest point index wins. Pixels no point hits
 take ``background``.
+
+A point's *index* for that tie rule is its row, or ``rank[row]`` when the caller passes
+``rank``: a cloud may then be stored in any order (e.g. :func:`locality_order`, which makes
+the z-buffer's memory accesses coherent and so the speed independent of the order the cloud
+came in) and still render exactly the images of its original order.
 
 Two back ends compute exactly the same float64 operations in the same order, so their
 images are identical to the bit:
@@ -44,6 +49,7 @@ def project(
     *,
     backend: Backend = "auto",
     chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+    rank: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Render ``points`` (N, 3, reference camera frame) with ``colors`` (N, C) under ``motions``.
 
@@ -51,11 +57,12 @@ def project(
         points: (N, 3) xyz in the reference camera frame (metres).
         colors: (N, C) values in [0, 1].
         K: (3, 3) intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``.
-        motions: (B, 6) ``(tx, ty, tz, rx, ry, rz)`` camera motions (SPEC section 1).
+        motions: (B, 6) ``(tx, ty, tz, rx, ry, rz)`` camera motions (docs/method.md §1).
         height, width: image size H x W.
         background: value of pixels that no point hits.
         backend: ``"numba"``, ``"torch"`` or ``"auto"`` (numba on CPU, torch elsewhere).
         chunk_elements: torch back end only: at most this many motions x points at once.
+        rank: (N,) distinct integers: the index each point has for the tie rule (default: its row).
 
     Returns:
         ``images`` (B, C, H, W) in the dtype of ``colors`` (float32 for integer colours) and
@@ -73,6 +80,11 @@ def project(
     if backend not in ("numba", "torch"):
         raise ValueError(f"unknown projection backend {backend!r}; allowed: auto, numba, torch")
 
+    if rank is None:
+        rank = torch.arange(points.shape[0], device=device)
+    rank = torch.as_tensor(rank, dtype=torch.int64, device=device)
+    if rank.shape != (points.shape[0],):
+        raise ValueError(f"rank must have shape ({points.shape[0]},), got {tuple(rank.shape)}")
     xyz = points.to(torch.float64)
     R = rotvec_to_matrix(motions[:, 3:])
     t = motions[:, :3]
@@ -80,8 +92,8 @@ def project(
     if backend == "numba":
         if device.type != "cpu":
             raise ValueError(f"the numba projection backend needs CPU tensors, got device {device}")
-        return _project_numba(xyz, colors, R, t, intr, height, width, background)
-    winner, depth = _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements)
+        return _project_numba(xyz, colors, rank, R, t, intr, height, width, background)
+    winner, depth = _zbuffer_torch(xyz, rank, R, t, intr, height, width, chunk_elements)
     images = _gather_colors(colors, winner, background, height, width)
     return images, depth.view(-1, height, width)
 
@@ -114,6 +126,32 @@ def _camera_kernel(P, R, t, out):  # pragma: no cover - compiled
             out[i, j] = R[0, j] * dx + R[1, j] * dy + R[2, j] * dz
 
 
+def locality_order(points: torch.Tensor, K: torch.Tensor, height: int, width: int, tile: int = 8) -> torch.Tensor:
+    """A permutation of ``points`` (N, 3, camera frame) that renders fast whatever order they came in.
+
+    Points in front of the camera are grouped by the ``tile`` x ``tile`` pixel tile they fall in
+    at the unmoved camera -- on the image plane extended well beyond the image, since a motion
+    brings points from outside into view -- tiles row by row, pixels row by row within a tile,
+    nearest first within a pixel (then by x and y, so that points of a surface facing the
+    camera stay together); points behind the camera come last. Under the small motions of
+    smoothing, consecutive points then touch nearby z-buffer entries and the kernel's branches
+    are predictable. Render the permuted cloud with ``rank=perm`` to get exactly the images of
+    the original order.
+    """
+    xyz = torch.as_tensor(points, dtype=torch.float64).cpu().numpy()
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    front = xyz[:, 2] > 0
+    z = np.where(front, xyz[:, 2], 1.0)
+    margin = 4  # image sizes of extended plane on each side
+    u = np.clip(np.floor(fx * (xyz[:, 0] / z) + cx), -margin * width, (margin + 1) * width - 1) + margin * width
+    v = np.clip(np.floor(fy * (xyz[:, 1] / z) + cy), -margin * height, (margin + 1) * height - 1) + margin * height
+    u, v = u.astype(np.int64), v.astype(np.int64)
+    tiles_x = -(-(2 * margin + 1) * width // tile)
+    key = ((v // tile) * tiles_x + u // tile) * tile * tile + (v % tile) * tile + u % tile
+    key = np.where(front, key, np.iinfo(np.int64).max)
+    return torch.from_numpy(np.lexsort((xyz[:, 1], xyz[:, 0], xyz[:, 2], key)))
+
+
 def _check_inputs(points, colors, K, motions, height, width) -> None:
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {tuple(points.shape)}")
@@ -142,13 +180,16 @@ def _camera_coordinate(r, j, dx, dy, dz):
     return r[:, 0, j : j + 1] * dx + r[:, 1, j : j + 1] * dy + r[:, 2, j : j + 1] * dz
 
 
-def _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements):
-    """Per-pixel winner index and depth, (B, H*W) each, by scatter-min; chunked over motions."""
+def _zbuffer_torch(xyz, rank, R, t, intr, height, width, chunk_elements):
+    """Per-pixel winner row and depth, (B, H*W) each, by scatter-min (depth, then rank among
+    the points at the minimum depth); chunked over motions."""
     fx, fy, cx, cy = intr
     n = xyz.shape[0]
     hw = height * width
     X, Y, Z = (c[None, :] for c in xyz.unbind(1))
-    point_index = torch.arange(n, device=xyz.device)[None, :]
+    rank_sorted, row_of = torch.sort(rank)  # the row of each rank, for mapping winners back
+    point_rank = rank[None, :]
+    none = torch.iinfo(torch.int64).max
     winners, depths = [], []
     step = max(1, chunk_elements // max(n, 1))
     for start in range(0, R.shape[0], step):
@@ -168,16 +209,18 @@ def _zbuffer_torch(xyz, R, t, intr, height, width, chunk_elements):
         zmin = torch.full((dump + 1,), torch.inf, dtype=torch.float64, device=xyz.device)
         zmin.scatter_reduce_(0, lin, zflat, reduce="amin")
         is_min = valid.reshape(-1) & (zflat == zmin[lin])
-        cand = torch.where(is_min, point_index.expand(b, n).reshape(-1), torch.full_like(lin, n))
-        win = torch.full((dump + 1,), n, dtype=torch.long, device=xyz.device)
+        cand = torch.where(is_min, point_rank.expand(b, n).reshape(-1), torch.full_like(lin, none))
+        win = torch.full((dump + 1,), none, dtype=torch.long, device=xyz.device)
         win.scatter_reduce_(0, lin, cand, reduce="amin")
         win = win[:dump].view(b, hw)
-        winners.append(torch.where(win == n, torch.full_like(win, -1), win))
+        found = win != none
+        rows = row_of[torch.searchsorted(rank_sorted, torch.where(found, win, rank_sorted[0]))]
+        winners.append(torch.where(found, rows, torch.full_like(win, -1)))
         depths.append(zmin[:dump].view(b, hw))
     return torch.cat(winners), torch.cat(depths)
 
 
-def _project_numba(xyz, colors, R, t, intr, height, width, background):
+def _project_numba(xyz, colors, rank, R, t, intr, height, width, background):
     """Images and depth from the compiled kernel, which also fills each image from its z-buffer."""
     dtype = colors.dtype if colors.is_floating_point() else torch.float32
     table = np.ascontiguousarray(colors.to(dtype).numpy())
@@ -185,8 +228,14 @@ def _project_numba(xyz, colors, R, t, intr, height, width, background):
     images = np.empty((b, c, height * width), dtype=table.dtype)
     depth = np.full((b, height * width), np.inf, dtype=np.float64)
     if b:
+        P = np.ascontiguousarray(xyz.numpy())
+        center, half = _block_bounds(P, BLOCK)
         _zbuffer_kernel(
-            np.ascontiguousarray(xyz.numpy()),
+            P,
+            np.ascontiguousarray(rank.numpy()),
+            center,
+            half,
+            BLOCK,
             table,
             R.numpy(),
             t.numpy(),
@@ -200,10 +249,71 @@ def _project_numba(xyz, colors, R, t, intr, height, width, background):
     return torch.from_numpy(images).view(b, c, height, width), torch.from_numpy(depth).view(b, height, width)
 
 
+BLOCK = 128
+"""Points per culling block of the numba kernel (consecutive in storage order)."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_bounds(P, block):  # pragma: no cover - compiled
+    """Per block of ``block`` consecutive points: the centre and half-extent of the axis-aligned
+    box holding them."""
+    n = P.shape[0]
+    nb = (n + block - 1) // block
+    center = np.empty((nb, 3))
+    half = np.empty((nb, 3))
+    for k in range(nb):
+        for j in range(3):
+            lo, hi = np.inf, -np.inf
+            for i in range(k * block, min(n, (k + 1) * block)):
+                v = P[i, j]
+                lo = min(lo, v)
+                hi = max(hi, v)
+            center[k, j] = 0.5 * (lo + hi)
+            half[k, j] = 0.5 * (hi - lo)
+    return center, half
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _never(w0, w1, w2, c, h, t, below):  # pragma: no cover - compiled
+    """True when ``g(P) = w . (P - t)`` is, over the whole box (centre ``c``, half-extent ``h``),
+    below zero (``below``) or above zero (not ``below``) by a margin far above float rounding."""
+    mid = w0 * (c[0] - t[0]) + w1 * (c[1] - t[1]) + w2 * (c[2] - t[2])
+    spread = abs(w0) * h[0] + abs(w1) * h[1] + abs(w2) * h[2]
+    slack = 1e-9 * (abs(mid) + spread) + 1e-12
+    return mid + spread < -slack if below else mid - spread > slack
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _outside(c, h, R, t, fx, fy, cx, cy, height, width):  # pragma: no cover - compiled
+    """True when no point of the box (centre ``c``, half-extent ``h``) can land in the image
+    under the motion ``(R, t)``.
+
+    The points that land form the cone ``Z > 0``, ``fx X + cx Z >= 0``, ``fx X + (cx - W) Z < 0``,
+    ``fy Y + cy Z >= 0``, ``fy Y + (cy - H) Z < 0`` of camera coordinates ``R^T (P - t)``; each
+    is a linear function ``w . (P - t)`` of the point, whose extremes over a box are
+    ``w . (c - t) +- |w| . h``. When one constraint fails over the whole box -- by a margin far
+    above float rounding -- no point of the box lands, and skipping it changes no pixel."""
+    zx, zy, zz = R[0, 2], R[1, 2], R[2, 2]  # Z = column 2 of R . (P - t)
+    xx, xy, xz = R[0, 0], R[1, 0], R[2, 0]
+    yx, yy, yz = R[0, 1], R[1, 1], R[2, 1]
+    return (
+        _never(zx, zy, zz, c, h, t, True)
+        or _never(fx * xx + cx * zx, fx * xy + cx * zy, fx * xz + cx * zz, c, h, t, True)
+        or _never(fx * xx + (cx - width) * zx, fx * xy + (cx - width) * zy, fx * xz + (cx - width) * zz, c, h, t, False)
+        or _never(fy * yx + cy * zx, fy * yy + cy * zy, fy * yz + cy * zz, c, h, t, True)
+        or _never(
+            fy * yx + (cy - height) * zx, fy * yy + (cy - height) * zy, fy * yz + (cy - height) * zz, c, h, t, False
+        )
+    )
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _zbuffer_kernel(P, colors, R, t, fx, fy, cx, cy, height, width, background, images, depth):  # pragma: no cover
-    """For each motion (in parallel): the z-buffer over all points in index order (the strict
-    ``<`` keeps the lowest index among equal depths), then the image from the winners."""
+def _zbuffer_kernel(
+    P, rank, center, half, block, colors, R, t, fx, fy, cx, cy, height, width, background, images, depth
+):  # pragma: no cover
+    """For each motion (in parallel): the z-buffer over all points in storage order, a point
+    replacing the pixel's winner when nearer, or as near with a lower rank, skipping blocks of
+    points that cannot land (:func:`_outside`); then the image from the winners."""
     n = P.shape[0]
     for b in numba.prange(R.shape[0]):
         r00, r01, r02 = R[b, 0, 0], R[b, 0, 1], R[b, 0, 2]
@@ -212,23 +322,26 @@ def _zbuffer_kernel(P, colors, R, t, fx, fy, cx, cy, height, width, background, 
         tx, ty, tz = t[b, 0], t[b, 1], t[b, 2]
         zbuf = depth[b]
         wbuf = np.full(height * width, -1, np.int64)
-        for i in range(n):
-            dx = P[i, 0] - tx
-            dy = P[i, 1] - ty
-            dz = P[i, 2] - tz
-            zc = r02 * dx + r12 * dy + r22 * dz
-            if not zc > 0.0:
+        for k in range(center.shape[0]):
+            if _outside(center[k], half[k], R[b], t[b], fx, fy, cx, cy, height, width):
                 continue
-            uf = fx * ((r00 * dx + r10 * dy + r20 * dz) / zc) + cx
-            if not (uf >= 0.0 and uf < width):
-                continue
-            vf = fy * ((r01 * dx + r11 * dy + r21 * dz) / zc) + cy
-            if not (vf >= 0.0 and vf < height):
-                continue
-            p = int(np.floor(vf)) * width + int(np.floor(uf))
-            if zc < zbuf[p]:
-                zbuf[p] = zc
-                wbuf[p] = i
+            for i in range(k * block, min(n, (k + 1) * block)):
+                dx = P[i, 0] - tx
+                dy = P[i, 1] - ty
+                dz = P[i, 2] - tz
+                zc = r02 * dx + r12 * dy + r22 * dz
+                if not zc > 0.0:
+                    continue
+                uf = fx * ((r00 * dx + r10 * dy + r20 * dz) / zc) + cx
+                if not (uf >= 0.0 and uf < width):
+                    continue
+                vf = fy * ((r01 * dx + r11 * dy + r21 * dz) / zc) + cy
+                if not (vf >= 0.0 and vf < height):
+                    continue
+                p = int(np.floor(vf)) * width + int(np.floor(uf))
+                if zc <= zbuf[p] and (zc < zbuf[p] or rank[i] < rank[wbuf[p]]):
+                    zbuf[p] = zc
+                    wbuf[p] = i
         image = images[b]
         for p in range(height * width):
             w = wbuf[p]

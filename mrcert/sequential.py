@@ -9,7 +9,7 @@ is a nonnegative martingale with mean 1 under the true mean p, so by Ville's ine
 ``P(exists t: M_t(p) >= 1 / alpha) <= alpha``. The set ``{p: M_t(p) < 1 / alpha}`` is an
 interval that contains p at *every* t simultaneously with probability >= 1 - alpha; its ends
 are valid bounds at any data-dependent stopping time. (Recomputing a fixed-n Clopper-Pearson
-bound after every batch has no such guarantee; SPEC section 6.)
+bound after every batch has no such guarantee; docs/method.md §6.)
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from scipy.stats import beta, binomtest, norm
 
 from mrcert.data.samples import CropBound, TestSample
 from mrcert.errors import MrcertError
-from mrcert.geometry import axis_index
+from mrcert.geometry import axis_index, compose
 
 ABSTAIN = -1
 """The smoothed classifier's answer when it cannot decide at the requested confidence."""
@@ -42,12 +42,7 @@ class SmoothingDistribution:
             axis_index(a)
             if not s > 0:
                 raise MrcertError(f"smoothing sigma for {a} must be > 0, got {s}")
-        rotations = [a for a in self.axes if a.startswith("r")]
-        if len(rotations) > 1 or len(set(self.axes)) != len(self.axes):
-            raise MrcertError(
-                f"smoothing over {'+'.join(self.axes)} is not covered by Theorem 1: use distinct "
-                "axes with at most one rotation axis (translations + a fixed-axis rotation)"
-            )
+        licensed(self.axes, self.sigmas)
 
     @classmethod
     def from_config(cls, motion: DictConfig) -> SmoothingDistribution:
@@ -69,7 +64,11 @@ class SmoothingDistribution:
         if self.single:
             return f"|{self.axes[0]}| < R ({'m' if self.axes[0].startswith('t') else 'rad'})"
         terms = " + ".join(f"({a}/{s:g})^2" for a, s in zip(self.axes, self.sigmas, strict=True))
-        return f"sqrt({terms}) < R (ellipsoid in sigma units, Theorem 1)"
+        return (
+            f"sqrt({terms}) < R (ellipsoid in sigma units, Theorem 1). Licensed because at most one axis "
+            "rotates and the two translation axes that rotation mixes are smoothed with equal sigma or not at all, "
+            "so the noise around a moved camera is the same Gaussian, shifted"
+        )
 
     def radius(self, p_a_lower: float) -> float:
         """Certified radius for a lower bound on the top class probability (pB = 1 - pA).
@@ -102,6 +101,43 @@ class SmoothingDistribution:
             else:
                 rotation, axis = sigmas * s, a
         return CropBound(tuple(box), rotation, roll_only=axis in (None, "rz"))
+
+
+ORTHOGONAL = {"rx": ("ty", "tz"), "ry": ("tx", "tz"), "rz": ("tx", "ty")}
+"""The two translation axes a rotation about each axis mixes."""
+
+
+def licensed(axes: tuple[str, ...], sigmas: tuple[float, ...]) -> None:
+    """Raise unless Theorem 1 licenses smoothing over ``axes`` with ``sigmas``.
+
+    Around a moved camera the smoothing draws ``alpha o eps = (R_a R_e, R_a t_e + t_a)``
+    (Lemma 1): the translation noise is *rotated* by the certified motion's rotation. The
+    Gaussian in parameter space is then merely shifted by ``alpha`` -- what the certificate
+    assumes -- only if the translation noise is invariant under rotations about the smoothed
+    rotation axis k: the two translation axes orthogonal to k are both smoothed with equal
+    sigma, or neither. At most one rotation axis; each axis once.
+    """
+    name = "+".join(axes)
+    rotations = [a for a in axes if a.startswith("r")]
+    if len(set(axes)) != len(axes) or len(rotations) > 1:
+        raise MrcertError(
+            f"smoothing over {name} is not licensed by Theorem 1: use each axis once and at most one rotation "
+            "axis (translations plus a rotation about one fixed axis)"
+        )
+    if not rotations:
+        return
+    sigma = dict(zip(axes, sigmas, strict=True))
+    pair = ORTHOGONAL[rotations[0]]
+    smoothed = [a for a in pair if a in sigma]
+    if not smoothed or (len(smoothed) == 2 and sigma[pair[0]] == sigma[pair[1]]):
+        return
+    given = ", ".join(f"sigma_{a[1]}={sigma[a]:g}" for a in smoothed)
+    raise MrcertError(
+        f"smoothing over {name} ({given}) is not licensed by Theorem 1: around a moved camera the translation "
+        f"noise is rotated by the certified rotation about {rotations[0][1]}, so {pair[0]} and {pair[1]} must both "
+        f"be smoothed with equal sigma, or neither (allowed e.g. {pair[0]}+{pair[1]}+{rotations[0]} with "
+        f"sigma_{pair[0][1]} = sigma_{pair[1][1]}, or {rotations[0]} with translations along {rotations[0][1]} only)"
+    )
 
 
 def image_generator(seed: int, index: int, *stream) -> torch.Generator:
@@ -188,10 +224,16 @@ class MotionSmoothedClassifier:
         return self.sample.render(motions, backend=backend)[0]
 
     def sample_counts(self, n: int, generator: torch.Generator, center: torch.Tensor | None = None) -> np.ndarray:
-        """Votes over ``n`` motions ``center + eps`` (one-axis and translation parts add exactly)."""
+        """Votes over ``n`` motions ``center o eps`` (Lemma 1): the camera moved by ``center``,
+        then by the noise in its own frame. On one axis this is ``center + eps`` exactly."""
         motions = self.distribution.sample(n, generator)
         if center is not None:
-            motions = motions + center.to(torch.float64)
+            center = center.to(torch.float64).reshape(1, 6)
+            moved = set(torch.nonzero(center[0]).flatten().tolist())
+            if self.distribution.single and moved <= {axis_index(self.distribution.axes[0])}:
+                motions = motions + center  # along the one smoothed axis composition is addition, exactly
+            else:
+                motions = compose(center.expand(n, 6), motions)
         return self.counts(motions)
 
     def predict(self, n: int, alpha: float, generator: torch.Generator, center: torch.Tensor | None = None) -> int:

@@ -2,7 +2,7 @@
 
 The parent run, the experiment and (for SQLite) the schema are created once, by
 :class:`MultirunParentCallback` before any job starts, and the ids reach the jobs through a
-file in the sweep directory -- never by jobs racing to create them (SPEC section 6).
+file in the sweep directory -- never by jobs racing to create them (docs/method.md §6).
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import shutil
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -299,7 +300,11 @@ class MultirunParentCallback(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         if not config.tracking.enabled:
             return
-        experiment_id = ensure_experiment(config.tracking)
+        try:
+            experiment_id = ensure_experiment(config.tracking)
+        except MrcertError as exc:  # no store, no sweep: one line, as for a single run
+            print(f"mrcert: error: {exc}", file=sys.stderr)
+            sys.exit(2)
         client = configure(config.tracking).MlflowClient()
         sweep_dir = Path(config.hydra.sweep.dir)
         tags = run_tags(config) | {

@@ -15,7 +15,7 @@ from mrcert.config import CONF_DIR
 
 os.environ.setdefault("MLFLOW_ENABLE_ASYNC_LOGGING", "false")
 
-# The paper's 160 x 90 camera (SPEC section 2).
+# The paper's 160 x 90 camera (docs/method.md §2).
 PAPER_K = torch.tensor([[386.274, 0.0, 80.0], [0.0, 386.274, 45.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
 

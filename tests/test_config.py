@@ -3,13 +3,15 @@
 from pathlib import Path
 
 import pytest
+import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from mrcert.config import CONF_DIR, validate
 from mrcert.errors import ConfigError
+from mrcert.identity import flatten
 
-GROUPS = sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name not in ("hydra", "experiment"))
+GROUPS = sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra")
 
 
 def options(group: str) -> list[str]:
@@ -21,17 +23,64 @@ def compose_cfg(overrides: list[str]):
         return compose("config", overrides=overrides, return_hydra_config=True)
 
 
+# Overlay groups are selected by what they overlay (``${task}_${experiment}``, ``${data}_${profile}``, ...).
+OVERLAYS = {
+    "task_experiment": lambda o: [f"task={o.split('_', 1)[0]}", f"experiment={o.split('_', 1)[1]}"],
+    "data_profile": lambda o: [f"data={o.rsplit('_', 1)[0]}", f"profile={o.rsplit('_', 1)[1]}"],
+    "train_profile": lambda o: [f"profile={o}"],
+}
+REQUIRED = {
+    ("data", "pointcloud"): ["data.path=scan.ply"],
+    ("data", "custom"): ["data.path=scan.ply", "data.poses=poses.json"],
+    ("task", "import"): ["task.path=certify.tsv"],
+}
+
+
+def option_file(group: str, option: str) -> tuple[str, dict]:
+    """The package an option's file writes to and its own values (defaults list left out)."""
+    path = CONF_DIR / group / f"{option}.yaml"
+    first = path.read_text().splitlines()[0]
+    package = first.split("@package", 1)[1].strip() if "@package" in first else group
+    values = yaml.safe_load(path.read_text()) or {}
+    values.pop("defaults", None)
+    return package, values
+
+
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
-def test_every_option_composes_and_validates(group, option):
-    required = {
-        ("data", "pointcloud"): ["data.path=scan.ply"],
-        ("data", "custom"): ["data.path=scan.ply", "data.poses=poses.json"],
-        ("task", "import"): ["task.path=certify.tsv"],
-    }
-    overrides = [f"{group}={option}", *required.get((group, option), [])]
-    cfg = compose_cfg(overrides)
+def test_every_option_composes_to_its_own_values_and_validates(group, option):
+    selection = OVERLAYS[group](option) if group in OVERLAYS else [f"{group}={option}"]
+    if group == "data_profile" or group == "train_profile":
+        selection.append("profile=quick") if "profile=quick" not in selection else None
+    cfg = compose_cfg([*selection, *REQUIRED.get((group, option), [])])
+    assert cfg.hydra.runtime.choices[group] == option
+    package, values = option_file(group, option)
+    node = cfg if package == "_global_" else OmegaConf.select(cfg, package)
+    literal = {k: v for k, v in flatten(values).items() if not (isinstance(v, str) and ("${" in v or v == "???"))}
+    composed = flatten(OmegaConf.to_container(node, resolve=False))
+    # Every value the file sets is in the composed config, unless an option composed later overrides it.
+    overridden = {k for k in literal if composed.get(k) != literal[k]}
+    assert overridden <= later_overrides(cfg, group, package), overridden
     validate(cfg)
     assert OmegaConf.select(cfg, "hydra.run.dir").startswith(str(cfg.paths.outputs))
+
+
+def later_overrides(cfg, group: str, package: str) -> set[str]:
+    """Keys (relative to ``package``) that options composed after ``group`` set."""
+    order = ["task", "data", "profile", "train", "train_profile", "data_profile", "motion", "model", "attack",
+             "tracking", "experiment", "task_experiment"]  # fmt: skip
+    keys: set[str] = set()
+    for later in order[order.index(group) + 1 :] if group in order else []:
+        choice = cfg.hydra.runtime.choices.get(later)
+        if not choice or not (CONF_DIR / later / f"{choice}.yaml").is_file():  # an optional overlay that is absent
+            continue
+        later_package, values = option_file(later, choice)
+        for k in flatten(values):
+            full = k if later_package == "_global_" else f"{later_package}.{k}"
+            if package == "_global_":
+                keys.add(full)
+            elif full.startswith(package + "."):
+                keys.add(full[len(package) + 1 :])
+    return keys
 
 
 def test_groups_the_issue_asks_for_exist():
@@ -78,3 +127,46 @@ def test_bad_values_are_rejected_with_key_value_and_allowed(override, key, value
         validate(cfg)
     message = str(info.value)
     assert f"{key}={value}" in message and allowed in message
+
+
+EXPERIMENT_TASKS = {
+    "demo": ("train", "certify", "smooth", "attack"),
+    "table3": ("train", "certify", "smooth", "attack"),
+    "table1": ("train", "smooth", "attack"),
+    "tabletop": ("train", "smooth", "attack"),
+    "sweep": ("certify",),
+}
+
+
+def pick(jobs: list, every_job: bool) -> list:
+    return jobs if every_job else [*jobs[:2], jobs[-1]]
+
+
+@pytest.mark.parametrize("every_job", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_train(every_job):
+    """Each job of each experiment, with every task it is meant for, composes and validates;
+    every model an evaluation job looks up is one that a train job of the experiments makes.
+    The fast run takes each experiment's first, second and last job; ``slow`` takes all."""
+    from mrcert.checkpoints import train_key
+    from mrcert.config import plain
+    from mrcert.identity import identify
+    from mrcert.tables import sweep_combos
+    from mrcert.tasks import TASKS
+
+    assert set(EXPERIMENT_TASKS) == {p.stem for p in (CONF_DIR / "experiment").glob("*.yaml")}
+    trained, evaluated = set(), {}
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        jobs = [
+            (experiment, task, combo)
+            for experiment, tasks in EXPERIMENT_TASKS.items()
+            for combo in pick(sweep_combos(experiment), every_job)
+            for task in tasks
+        ]
+        for experiment, task, combo in jobs:
+            cfg = compose("config", overrides=[f"experiment={experiment}", f"task={task}", *combo])
+            validate(cfg)
+            if task == "train":
+                trained.add(identify(plain(cfg), TASKS["train"].identity).key)
+            else:
+                evaluated[train_key(cfg)] = f"experiment={experiment} task={task} {' '.join(combo)}"
+    assert {k: v for k, v in evaluated.items() if k not in trained} == {}

@@ -1,7 +1,9 @@
 """Scenes and datasets: protocols, determinism, cache, crop exactness, loaders, bad files."""
 
 import json
+import os
 import pickle
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -11,6 +13,7 @@ from hydra import compose, initialize_config_dir
 from PIL import Image
 
 from mrcert.config import CONF_DIR, validate
+from mrcert.data.cache import GENERATOR_VERSION
 from mrcert.data.datasets import Augment, load, render_poses
 from mrcert.data.protocols import look_at_poses
 from mrcert.data.samples import CropBound
@@ -67,16 +70,30 @@ def test_metaroom_protocol(tmp_path):
     assert (tr[:, 3] >= 2.3).all() and (tr[:, 3] <= 2.9).all()
     assert (tr[:, 1] >= 0).all() and (tr[:, 1] <= 90).all() and (np.abs(tr[:, 2]) <= 60 + 1e-9).all()
     assert (train.poses[:, 2, 3] < metaroom.CEILING_Z).all()  # cameras inside the room
-    # No training pose is within 15 deg of a test pose in yaw, pitch and roll at once.
-    dyaw = np.abs((tr[:, None, 0] - angles[None, :, 0] + 180) % 360 - 180)
-    close = (
-        (dyaw < 15)
-        & (np.abs(tr[:, None, 1] - angles[None, :, 1]) < 15)
-        & (np.abs(tr[:, None, 2] - angles[None, :, 2]) < 15)
-    )
-    assert not close.any()
+    assert_strictly_separated(tr, angles)
     # ... while the ranges are otherwise covered (the rule is not vacuous).
     assert (tr[:, 0] % 360).min() < 20 and (tr[:, 0] % 360).max() > 340 and tr[:, 2].min() < -50 and tr[:, 2].max() > 50
+    assert tr[:, 1].min() < 30 and tr[:, 1].max() > 80
+
+
+def assert_strictly_separated(train: np.ndarray, test: np.ndarray) -> None:
+    """Every training pose's yaw, pitch and roll each differ by at least 15 deg from those of
+    every test pose (the paper: "at least 15 deg away from any yaw, pitch, or roll angle of
+    every pose in the test set")."""
+    dyaw = np.abs((train[:, None, 0] - test[None, :, 0] + 180) % 360 - 180)
+    dpitch = np.abs(train[:, None, 1] - test[None, :, 1])
+    droll = np.abs(train[:, None, 2] - test[None, :, 2])
+    assert (dyaw >= 15 - 1e-9).all() and (dpitch >= 15 - 1e-9).all() and (droll >= 15 - 1e-9).all()
+
+
+@pytest.mark.parametrize("profile", ["quick", "paper"])
+def test_every_metaroom_training_pose_is_apart_from_every_test_pose_in_every_angle(profile, tmp_path):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["data=metaroom_synth", f"profile={profile}", f"paths.outputs={tmp_path}"])
+    bundle = load(cfg.data)
+    test, train = bundle.split("test"), bundle.split("train")
+    assert len(train) == 20 * (40 if profile == "quick" else 500)
+    assert_strictly_separated(pose_angles(train.poses), pose_angles(test.poses))
 
 
 def test_tabletop_protocol(tmp_path):
@@ -251,7 +268,7 @@ def test_custom_scene_renders_its_poses(tmp_path):
     colors = rng.integers(0, 256, (4000, 3)).astype(np.uint8)
     bundle = load(data_cfg("custom", write_custom(tmp_path, colors=colors), tmp_path))
     assert bundle.classes == ["a", "b"] and bundle.train().labels.tolist() == [0, 1]
-    np.testing.assert_allclose(bundle.points, bundle.points)  # loaded
+    np.testing.assert_array_equal(bundle.points, np.random.default_rng(0).uniform(-1, 1, (4000, 3)))  # as written
     assert bundle.colors.max() <= 1.0 and np.allclose(bundle.colors * 255, colors, atol=1e-4)
     assert len(bundle.samples()) == 2
 
@@ -302,3 +319,38 @@ def test_focal_length_must_be_positive(tmp_path):
         cfg = compose("config", overrides=["data=custom", "data.path=a.ply", "data.poses=p.json", "data.image.fx=0"])
     with pytest.raises(ConfigError, match=r"data.image.fx=0 is not allowed: a finite number > 0"):
         validate(cfg)
+
+
+FINGERPRINTS = Path(__file__).with_name("scene_fingerprints.json")
+
+
+def scene_fingerprint(tmp_path) -> dict[str, list[list[float]]]:
+    """Per rendered image (the test images and the first training images of two classes of each
+    synthetic dataset, coarse surfaces): mean of each channel and share of background pixels."""
+    out = {}
+    for name, extra in (("metaroom_synth", TINY), ("tabletop_synth", ["data.classes=[star,oval]"])):
+        bundle = load(data_cfg(name, [*extra, "data.protocol.train.per_class=4"], tmp_path))
+        images = np.concatenate([np.asarray(bundle.test().images), np.asarray(bundle.train().images)[:4]])
+        means = images.reshape(len(images), -1, 3).mean(axis=1) / 255
+        background = (images == 255).all(axis=-1).reshape(len(images), -1).mean(axis=1)
+        out[name] = np.round(np.column_stack([means, background]), 4).tolist()
+    return out
+
+
+def test_a_change_of_the_rendered_scenes_forces_a_generator_version_bump(tmp_path):
+    """The data cache trusts GENERATOR_VERSION: a change of scene generation, pose sampling or
+    rendering that is not given a new version would silently reuse old cached images. The
+    fingerprints of each version are recorded here; a change needs a bump and a new record
+    (MRCERT_RECORD_FINGERPRINT=1 pytest -k generator_version writes it)."""
+    current = scene_fingerprint(tmp_path)
+    recorded = json.loads(FINGERPRINTS.read_text()) if FINGERPRINTS.exists() else {}
+    version = str(GENERATOR_VERSION)
+    if os.environ.get("MRCERT_RECORD_FINGERPRINT") and version not in recorded:
+        FINGERPRINTS.write_text(json.dumps(recorded | {version: current}) + "\n")
+        recorded[version] = current
+    assert version in recorded, f"GENERATOR_VERSION {version} has no recorded fingerprint: record it"
+    for name, rows in recorded[version].items():
+        assert np.allclose(current[name], rows, atol=2e-3), (
+            f"the rendered {name} scenes changed but GENERATOR_VERSION is still {version}: bump it in "
+            "mrcert/data/cache.py (so no old cache entry is reused) and record the new fingerprint"
+        )

@@ -161,13 +161,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_an_unreachable_tracking_server_fails_in_seconds(tmp_path):
+@pytest.mark.parametrize("sweep", [[], ["-m", "motion=tx,rz"]], ids=["run", "multirun"])
+def test_an_unreachable_tracking_server_fails_in_seconds(sweep, tmp_path):
     uri = f"http://127.0.0.1:{free_port()}"
     t0 = time.time()
-    proc = run_cli(["task=render", "data=testscene", "tracking=server", f"tracking.uri={uri}"], tmp_path)
+    proc = run_cli([*sweep, "task=render", "data=testscene", "tracking=server", f"tracking.uri={uri}"], tmp_path)
     assert time.time() - t0 < 30
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert f"cannot reach the MLflow tracking server at {uri}" in proc.stderr
+    assert f"mrcert: error: cannot reach the MLflow tracking server at {uri}" in proc.stderr
 
 
 def test_bad_input_files_fail_before_any_run_exists(checkpoints, tmp_path):

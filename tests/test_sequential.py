@@ -39,25 +39,31 @@ def test_coverage_holds_at_every_look_simultaneously(p):
     assert missed / streams <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / streams)
 
 
+class Simulated(MotionSmoothedClassifier):
+    """The smoothed classifier with its base votes simulated: class 1 with probability ``p``
+    per sample (no rendering), so the real stopping code runs on thousands of streams."""
+
+    def __init__(self, p: float, seed: int):
+        super().__init__(None, None, SmoothingDistribution(("tz",), (1.0,)), 2)
+        self.p, self.rng = p, np.random.default_rng(seed)
+
+    def counts(self, motions):
+        ones = int((self.rng.random(len(motions)) < self.p).sum())
+        return np.array([len(motions) - ones, ones])
+
+
 def test_sequential_decision_error_rate_on_simulated_streams():
     """Streams whose true p is just below what the radius needs: certifying it is an error."""
-    alpha, sigma, radius, look, n_max = 0.05, 1.0, 1.0, 50, 3000
-    need = norm.cdf(radius / sigma)
-    p_true = need - 0.01
-    cs = BetaBinomialCS(alpha)
-    rng = np.random.default_rng(7)
-    errors, stops = 0, []
-    for _ in range(400):
-        s = t = 0
-        while t < n_max:
-            s += int((rng.random(look) < p_true).sum())
-            t += look
-            if cs.lower(s, t) >= need or cs.upper(s, t) < need:
-                break
-        errors += cs.lower(s, t) >= need
-        stops.append(t)
+    alpha, radius, look, n_max = 0.05, 1.0, 50, 3000
+    p_true = norm.cdf(radius) - 0.01
+    certs = [
+        Simulated(p_true, seed).certify_sequential(100, n_max, alpha, radius, look, image_generator(0, seed))
+        for seed in range(400)
+    ]
+    errors = sum(c.prediction == 1 and c.radius >= radius for c in certs)
     assert errors / 400 <= alpha
-    assert np.mean(stops) < n_max  # it does stop early when the answer is clear ("cannot be reached")
+    assert np.mean([c.n for c in certs]) < n_max  # it does stop early when the answer is clear ("cannot be reached")
+    assert all(c.n % look == 0 for c in certs)  # it only stops at looks
 
 
 def test_sequential_certificates_follow_their_sequence_and_save_samples():

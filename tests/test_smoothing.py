@@ -215,8 +215,24 @@ def test_result_log_truncates_a_torn_line_and_checks_its_header(tmp_path):
 
 def test_smooth_and_attack_tasks(trained, tmp_path):
     ck = f"model.checkpoint={best(trained)}"
-    smooth = run_task(tiny_cfg(["task=smooth", "task.n=30", "task.max=3", ck], tmp_path), tmp_path / "s")
-    assert 0 <= smooth["smoothed_benign_accuracy"] <= 1 and smooth["num_images"] == 3
+    cfg = tiny_cfg(["task=smooth", "task.n=30", "task.max=3", ck], tmp_path)
+    smooth = run_task(cfg, tmp_path / "s")
+    rows = read_log(tmp_path / "s" / "smooth.tsv", ["idx"])
+    # Each row is PREDICT at that test pose, recomputed here through the classifier directly.
+    from mrcert.checkpoints import load_classifier
+    from mrcert.data.datasets import load
+
+    bundle = load(cfg.data)
+    samples = bundle.samples(crop=SmoothingDistribution(("tz",), (0.1,)).crop_bound(6.0))
+    model = load_classifier(cfg, 3, "cpu")
+    for _, row in rows.iterrows():
+        sample = samples[int(row.idx)]
+        smoothed = MotionSmoothedClassifier(model, sample, SmoothingDistribution(("tz",), (0.1,)), 3)
+        assert row.predict == smoothed.predict(30, 0.01, image_generator(0, int(row.idx)))
+        assert row.label == sample.label and row.correct == int(row.predict == sample.label)
+    assert rows.idx.tolist() == [0, 1, 2] and smooth["num_images"] == 3
+    assert smooth["smoothed_benign_accuracy"] == rows.correct.mean()
+    assert smooth["abstain_rate"] == (rows.predict == ABSTAIN).mean()
     for name in ("uniform", "grid"):
         out = run_task(
             tiny_cfg(["task=attack", f"attack={name}", "attack.k=4", "task.n=20", "task.max=3", ck], tmp_path / name),

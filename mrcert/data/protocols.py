@@ -1,4 +1,4 @@
-"""Camera pose protocols of the paper's datasets (SPEC section 3).
+"""Camera pose protocols of the paper's datasets (docs/method.md §3).
 
 A pose is given by ``(yaw, pitch, roll, radius)`` around a target point: the camera sits at
 ``target + radius * (cos p cos y, cos p sin y, sin p)`` (z up), looks at the target, and is
@@ -6,9 +6,15 @@ rolled by ``roll`` about its optical axis (a roll is the camera's own ``rz`` mot
 are in degrees here, as in the paper's protocol; poses are 4x4 camera-to-world matrices in
 the OpenCV camera convention (x right, y down, z forward).
 
-Separation rule: a training pose is kept only if, for every test pose, it differs by at
-least the given gap in at least one of the quantities (yaw circularly). So no training pose
-lies inside the box of half-widths ``gap`` around any test pose.
+Separation rules (``protocol.separation_rule``), with the gaps of ``protocol.separation``
+(yaw compared circularly):
+
+* ``every`` (MetaRoom, the paper's wording "at least 15 deg away from any yaw, pitch, or roll
+  angle of every pose in the test set"): every quantity of a training pose differs by at least
+  its gap from that quantity of every test pose;
+* ``any`` (the tabletop, where ``every`` is infeasible: 19 random test rolls with 20 deg gaps
+  cover the whole -60..60 deg range): for every test pose, at least one quantity differs by
+  its gap, so no training pose lies inside the box of half-widths ``gap`` around a test pose.
 """
 
 from __future__ import annotations
@@ -56,17 +62,23 @@ class PoseSet:
         return len(self.params)
 
 
-def separated(candidates: np.ndarray, tests: np.ndarray, gaps: dict[str, float]) -> np.ndarray:
-    """Mask of candidates (N, 4) lying outside the gap box of every test pose (M, 4)."""
-    if len(tests) == 0:
+RULES = ("every", "any")
+
+
+def separated(candidates: np.ndarray, tests: np.ndarray, gaps: dict[str, float], rule: str = "every") -> np.ndarray:
+    """Mask of candidates (N, 4) separated from every test pose (M, 4) by ``rule`` (see above)."""
+    if rule not in RULES:
+        raise ValueError(f"separation rule {rule!r} is not one of {RULES}")
+    if len(tests) == 0 or not gaps:
         return np.ones(len(candidates), bool)
-    far = np.zeros((len(candidates), len(tests)), bool)
+    apart = []
     for q, gap in gaps.items():
         i = QUANTITIES.index(q)
         diff = np.abs(candidates[:, None, i] - tests[None, :, i])
         if q == "yaw":
             diff = np.minimum(diff % 360.0, 360.0 - diff % 360.0)
-        far |= diff >= gap
+        apart.append(diff >= gap)
+    far = np.logical_and.reduce(apart) if rule == "every" else np.logical_or.reduce(apart)
     return far.all(axis=1)
 
 
@@ -77,6 +89,7 @@ def sample_poses(
     *,
     tests: np.ndarray | None = None,
     gaps: dict[str, float] | None = None,
+    rule: str = "every",
     max_camera_z: float | None = None,
     target=(0.0, 0.0, 0.0),
     max_rounds: int = 1000,
@@ -87,7 +100,7 @@ def sample_poses(
     count = 0
     for _ in range(max_rounds):
         batch = np.column_stack([rng.uniform(*ranges[q], size=max(2 * n, 64)) for q in QUANTITIES])
-        ok = separated(batch, tests if tests is not None else np.zeros((0, 4)), gaps or {})
+        ok = separated(batch, tests if tests is not None else np.zeros((0, 4)), gaps or {}, rule)
         if max_camera_z is not None:
             ok &= target[2] + batch[:, 3] * np.sin(np.deg2rad(batch[:, 1])) <= max_camera_z
         kept.append(batch[ok])
@@ -95,7 +108,7 @@ def sample_poses(
         if count >= n:
             return PoseSet(np.concatenate(kept)[:n], tuple(target))
     raise ValueError(
-        f"could not draw {n} poses within {ranges} separated by {gaps} from the test poses; "
+        f"could not draw {n} poses within {ranges} separated ({rule}) by {gaps} from the test poses; "
         "widen the ranges or reduce the gaps"
     )
 

@@ -1,4 +1,4 @@
-"""The released MetaRoom layout (SPEC section 3), read from a folder the user names.
+"""The released MetaRoom layout (docs/method.md §3), read from a folder the user names.
 
 ``<root>/metaroom_<axis>[_vanilla]/{train,test}/<class>/*.png`` are image folders (labels =
 alphabetical order of the class folders); ``.../certify/<class>/*.pkl`` hold one test sample

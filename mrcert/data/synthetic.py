@@ -1,4 +1,4 @@
-"""Synthetic datasets: scene clouds per class and the paper's pose protocols (SPEC section 3).
+"""Synthetic datasets: scene clouds per class and the paper's pose protocols (docs/method.md §3).
 
 ``metaroom_synth``: the room, the table and one of 20 objects; test poses on a ring (6 yaws
 at 2.8 m, pitch 10 deg, roll 0), training poses drawn uniformly in the protocol's ranges and
@@ -98,6 +98,7 @@ class SyntheticSource:
             rng,
             tests=self._test_set(label).params,
             gaps=gaps,
+            rule=str(p.separation_rule),
             max_camera_z=max_z,
             target=self._target(),
         )

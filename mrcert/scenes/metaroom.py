@@ -1,7 +1,7 @@
 """Synthetic MetaRoom: the paper's room, table and 20 indoor object classes as point clouds.
 
 World frame: z up, metres, origin at the centre of the table top, so objects stand on z = 0
-and their centres sit about 0.1 m above the origin, where the cameras look (SPEC section 3).
+and their centres sit about 0.1 m above the origin, where the cameras look (docs/method.md §3).
 The room spans x, y in [-3, 3] with the floor at z = -1 (the table is 1 m high) and the
 ceiling 3.7 m above the floor. Everything is built from the primitives in
 :mod:`mrcert.scenes.primitives`, coloured procedurally, and deterministic given its seed.

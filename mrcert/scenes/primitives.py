@@ -134,7 +134,7 @@ def torus(major: float, minor: float, density: float, arc: tuple[float, float] =
 
 
 def rotation(axis: str, angle: float) -> np.ndarray:
-    """Rotation matrix about world axis ``"x"``, ``"y"`` or ``"z"`` (SPEC section 1's matrices)."""
+    """Rotation matrix about world axis ``"x"``, ``"y"`` or ``"z"`` (docs/method.md §1)."""
     rotvec = torch.zeros(3, dtype=torch.float64)
     rotvec["xyz".index(axis)] = angle
     return rotvec_to_matrix(rotvec).numpy()

@@ -35,12 +35,21 @@ def as_tensors(images: ImageSet) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.from_numpy(np.array(images.images)).permute(0, 3, 1, 2).contiguous(), torch.from_numpy(images.labels)
 
 
+def to_device(images: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A uint8 image batch as float in [0, 1] on ``device`` (channels-last on CUDA, copied from
+    pinned memory without blocking)."""
+    if device.type != "cuda":
+        return images.to(device).float().div_(255)
+    x = images.pin_memory().to(device, non_blocking=True).float().div_(255)
+    return x.contiguous(memory_format=torch.channels_last)
+
+
 @torch.inference_mode()
 def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int) -> float:
     model.eval()
     correct = 0
     for s in range(0, len(labels), batch):
-        x = images[s : s + batch].to(device).float().div_(255)
+        x = to_device(images[s : s + batch], torch.device(device))
         correct += int((model(x).argmax(1).cpu() == labels[s : s + batch]).sum())
     return correct / max(len(labels), 1)
 
@@ -62,6 +71,11 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
     torch.manual_seed(int(cfg.seed))
     model = build_model(cfg.model, len(bundle.classes)).to(device)
+    amp = bool(r.get("amp", False)) and device.type == "cuda"
+    if device.type == "cuda":  # fastest convolution algorithms for these fixed image sizes
+        torch.backends.cudnn.benchmark = True
+        model = model.to(memory_format=torch.channels_last)
+    scaler = torch.amp.GradScaler("cuda", enabled=amp)
     optimizer = torch.optim.SGD(model.parameters(), lr=r.lr, momentum=r.momentum, weight_decay=r.weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=r.step_size, gamma=r.gamma)
     loss_fn = nn.CrossEntropyLoss()
@@ -72,6 +86,8 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
+        if "scaler" in state:
+            scaler.load_state_dict(state["scaler"])
         start, best_acc = state["epoch"] + 1, state["best_acc"]
 
     meta = {
@@ -92,13 +108,15 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         bar = tqdm(range(0, len(order), r.batch_size), desc=f"epoch {epoch + 1}/{r.epochs}", leave=False)
         for s in bar:
             idx = order[s : s + r.batch_size]
-            x = train_x[idx].to(device).float().div_(255)
-            y = train_y[idx].to(device)
+            x = to_device(train_x[idx], device)
+            y = train_y[idx].to(device, non_blocking=True)
             optimizer.zero_grad(set_to_none=True)
-            logits = model(x)
-            loss = loss_fn(logits, y)
-            loss.backward()
-            optimizer.step()
+            with torch.autocast(device.type, dtype=torch.float16, enabled=amp):  # train.amp: training only
+                logits = model(x)
+                loss = loss_fn(logits, y)
+            scaler.scale(loss).backward()
+            scaler.step(optimizer)
+            scaler.update()
             total_loss += loss.item() * len(idx)
             correct += int((logits.argmax(1) == y).sum())
             bar.set_postfix(loss=f"{loss.item():.3f}", acc=f"{correct / (s + len(idx)):.3f}")
@@ -125,6 +143,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
                 "model": weights,
                 "optimizer": optimizer.state_dict(),
                 "scheduler": scheduler.state_dict(),
+                "scaler": scaler.state_dict(),
                 "epoch": epoch,
                 "best_acc": best_acc,
             },

@@ -1,0 +1,76 @@
+"""The CUDA path: exact projection, certification and overlapped rendering on a GPU.
+
+Marked ``cuda`` and skipped where no GPU exists (``make test-gpu`` runs them). How CPU and CUDA
+are compared: the projection is exact float64 in one fixed order of operations, so its images
+must be bit-identical. The classifier is not: cuDNN and CPU kernels add in different orders, so
+logits differ by float rounding, and a sample whose top two logits are that close can vote
+differently. Certify rows are therefore compared on the prediction (equal) and on the vote count
+of the top class (within 1% of n); everything upstream of the model is compared bit for bit.
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from mrcert.projection import locality_order, project
+from mrcert.smoothing import MotionSmoothedClassifier, SmoothingDistribution, image_generator
+from tests.conftest import PAPER_K, random_cloud, random_motions
+
+pytestmark = [
+    pytest.mark.cuda,
+    pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"),
+]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cuda_projection_equals_the_cpu_kernel_bit_for_bit(seed):
+    rng = np.random.default_rng(seed)
+    pts, cols = random_cloud(rng, n=200_000)
+    copies = torch.from_numpy(rng.choice(len(pts), 5000, replace=False))  # exact ties
+    pts, cols = torch.cat([pts, pts[copies]]), torch.cat([cols, cols[copies].flip(1)])
+    motions = random_motions(rng, per_axis=10)
+    cpu = project(pts, cols, PAPER_K, motions, 90, 160, backend="numba")
+    order = locality_order(pts, PAPER_K, 90, 160)
+    for p, c, rank in ((pts, cols, None), (pts[order], cols[order], order)):
+        gpu = project(p.cuda(), c.cuda(), PAPER_K, motions.cuda(), 90, 160, backend="torch", rank=rank)
+        assert torch.equal(gpu[0].cpu(), cpu[0]) and torch.equal(gpu[1].cpu(), cpu[1])
+
+
+def _classifier(num_classes: int = 5) -> torch.nn.Module:
+    torch.manual_seed(0)
+    from mrcert.models import SmallCNN
+
+    return torch.nn.Sequential(SmallCNN(num_classes, width=8)).eval()
+
+
+def test_certify_on_cuda_gives_the_cpu_rows_up_to_model_rounding():
+    from mrcert.data.samples import TestSample
+
+    rng = np.random.default_rng(3)
+    pts, cols = random_cloud(rng, n=50_000)
+    dist = SmoothingDistribution(("tz",), (0.1,))
+    rows = {}
+    for device in ("cpu", "cuda"):
+        sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
+        model = _classifier().to(device)
+        smoothed = MotionSmoothedClassifier(model, sample, dist, 5, batch_size=200, device=device)
+        rows[device] = [smoothed.certify(100, 1000, 0.01, image_generator(0, i)) for i in range(3)]
+    for cpu, gpu in zip(rows["cpu"], rows["cuda"], strict=True):
+        assert gpu.prediction == cpu.prediction and abs(gpu.count_a - cpu.count_a) <= 10
+
+
+def test_overlapped_rendering_on_cuda_gives_the_same_votes():
+    from mrcert.data.samples import TestSample
+
+    rng = np.random.default_rng(4)
+    pts, cols = random_cloud(rng, n=50_000)
+    dist = SmoothingDistribution(("rz",), (0.122173,))
+    sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
+    model = _classifier().cuda()
+    votes = [
+        MotionSmoothedClassifier(model, sample, dist, 5, 128, "cuda", overlap=overlap).sample_counts(
+            1000, image_generator(0, 7)
+        )
+        for overlap in (False, True)
+    ]
+    assert (votes[0] == votes[1]).all()
