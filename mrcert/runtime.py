@@ -1,4 +1,4 @@
-"""Run-time choices shared by tasks: the device."""
+"""Run-time choices shared by tasks: the device, and a description of the machine."""
 
 from __future__ import annotations
 
@@ -15,3 +15,20 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise MrcertError(f"device={name!r} asks for CUDA but none is available; use device=cpu or device=auto")
     return device
+
+
+def machine() -> str:
+    """The machine a run executes on, in words: CPU model, cores, and the GPU when there is one."""
+    import os
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = f", GPU {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ", no GPU"
+    return f"{cpu}, {os.cpu_count()} cores{gpu}"

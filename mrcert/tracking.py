@@ -28,6 +28,7 @@ from mrcert import identity
 from mrcert.config import plain
 from mrcert.errors import MrcertError
 from mrcert.identity import RunIdentity
+from mrcert.runtime import machine
 from mrcert.store import FileLock, ensure_sqlite_store, probe_server
 
 log = logging.getLogger(__name__)
@@ -273,7 +274,9 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
         lock = run_lock(output_dir)
         if not lock.acquire(blocking=False):
             raise MrcertError(f"the run folder {output_dir} is held by another process ({lock.holder()})")
-        tags = run_tags(cfg) | ident.tags() | {"mrcert.output_dir": str(output_dir.resolve())}
+        tags = (
+            run_tags(cfg) | ident.tags() | {"mrcert.output_dir": str(output_dir.resolve()), "mrcert.machine": machine()}
+        )
         run_ctx = mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags)
     try:
         with run_ctx as run:

@@ -135,6 +135,7 @@ EXPERIMENT_TASKS = {
     "table1": ("train", "smooth", "attack"),
     "tabletop": ("train", "smooth", "attack"),
     "sweep": ("certify",),
+    "results": ("train", "certify", "smooth", "attack"),
 }
 
 

@@ -76,6 +76,7 @@ def children_of_one_parent(client):
     return parent, children, runs
 
 
+@pytest.mark.slow
 def test_eight_job_multirun_against_a_tracking_server(server, tmp_path):
     proc = run_cli(
         [
@@ -104,6 +105,7 @@ def test_eight_job_multirun_against_a_tracking_server(server, tmp_path):
     assert client.get_experiment(parent.info.experiment_id).name == "mrcert"
 
 
+@pytest.mark.slow
 def test_submitit_local_launcher(tmp_path):
     proc = run_cli(
         [

@@ -5,7 +5,8 @@ seeded per test image); ``attack=grid`` takes K evenly spaced motions in [-r, r]
 counts as robust only if the prediction is right at all K motions (smoothed: PREDICT at the
 perturbed pose, abstain = wrong). Per image: the base model's benign prediction and the
 worst motion found (base: smallest margin; smoothed: the first failing motion, else the one
-with the fewest votes for the label).
+with the fewest votes for the label), and how the smoothed model failed there (``abstain``:
+PREDICT could not decide; ``wrong``: it decided another class; ``-``: it did not fail).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from omegaconf import DictConfig
 from mrcert.certify_log import ResultLog, read_log
 from mrcert.errors import MrcertError
 from mrcert.geometry import axis_index
-from mrcert.smoothing import image_generator
+from mrcert.smoothing import ABSTAIN, image_generator
 from mrcert.tasks import RunContext
 from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
 
@@ -33,6 +34,7 @@ COLUMNS = [
     "base_worst",
     "smoothed_robust",
     "smoothed_worst",
+    "smoothed_failure",
     "seconds",
 ]
 
@@ -98,6 +100,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "base_worst": float(motions[int(margin.argmin()), axis_index(axis)]),
             "smoothed_robust": -1,
             "smoothed_worst": float("nan"),
+            "smoothed_failure": "-",
         }
         if t.smoothed:
             smoothed = ev.smoothed(sample, cfg)
@@ -105,8 +108,14 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             for k, m in enumerate(motions):
                 counts = smoothed.sample_counts(int(t.n), image_generator(cfg.seed, i, "predict", k), m)
                 votes.append(counts[sample.label])
-                if smoothed.decide(counts, float(t.alpha)) != sample.label:
-                    row |= {"smoothed_robust": 0, "smoothed_worst": float(m[axis_index(axis)])}
+                decision = smoothed.decide(counts, float(t.alpha))
+                if decision != sample.label:
+                    failure = "abstain" if decision == ABSTAIN else "wrong"
+                    row |= {
+                        "smoothed_robust": 0,
+                        "smoothed_worst": float(m[axis_index(axis)]),
+                        "smoothed_failure": failure,
+                    }
                     break
             else:
                 row |= {"smoothed_robust": 1, "smoothed_worst": float(motions[int(np.argmin(votes)), axis_index(axis)])}

@@ -75,8 +75,17 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         metrics[f"{name}_filled_cells"] = float(
             sum(1 for v in values if isinstance(v, str) and v.strip() or isinstance(v, float) and not np.isnan(v))
         )
-    for path in tables.plot_curves(tables.curves(src), out / "certified_accuracy_vs_radius"):
+    figure, pdf = tables.plot_curves(tables.curves(src), out / "certified_accuracy_vs_radius")
+    for path in (figure, pdf):
         ctx.tracker.log_artifact(path, "tables")
+    if t.page:
+        from mrcert.results_page import write_page
+
+        table = tables.certified_table(src, show_paper=True, name="page")
+        command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
+        page = write_page(src, str(t.experiment or "table3"), table, figure, Path(t.page), command)
+        ctx.tracker.log_artifact(page, "tables")
+        print(f"\nEvidence page: {page.resolve()}")
     ctx.tracker.log_metrics(metrics)
     shown = built[t.print][0]
     print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
