@@ -182,7 +182,8 @@ def write_page(src: Source, experiment: str, table: pd.DataFrame, figure: Path, 
             f"scratch, {first.train.epochs} epochs at lr {first.train.lr}. Certification: "
             f"{'sequential (anytime-valid) ' if first.task.get('sequential') else ''}CERTIFY at r = sigma, "
             f"n0 = {first.task.n0}, n up to {first.task.n}, alpha = {first.task.alpha}; smoothed benign accuracy: "
-            f"PREDICT with n = 100; attack: 5 uniform perturbations within +-r, on "
+            f"PREDICT with n = {jobs[0].smooth.cfg.task.n}; attack: 5 uniform perturbations within +-r (PREDICT with "
+            f"n = {jobs[0].attack.cfg.task.n} at each), on "
             f"{_share(int(jobs[0].attack.cfg.task.skip))}. The paper's values are in parentheses "
             "(MetaRoom, ResNet-18, 120 test images).",
             "",
