@@ -39,10 +39,10 @@ def run(args, arch: str) -> None:
     import torch
     from hydra import compose, initialize_config_dir
 
-    from mrcert.config import CONF_DIR
-    from mrcert.data.datasets import load
-    from mrcert.models import build_model, for_inference
-    from mrcert.smoothing import MotionSmoothedClassifier, SmoothingDistribution, image_generator
+    from mrcert.core.models import build_model, for_inference
+    from mrcert.core.smoothing import SmoothedClassifier, SmoothingDistribution, image_generator
+    from mrcert.data.sources import load
+    from mrcert.infra.config import CONF_DIR
 
     torch.set_num_threads(args.threads)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -83,10 +83,10 @@ def run(args, arch: str) -> None:
         start = time.perf_counter()
         test_sample = samples[0]  # building the sample (cloud in the camera frame, crop) is per-image work
         built = time.perf_counter() - start
-        smoothed = MotionSmoothedClassifier(model, test_sample, dist, 20, 200, device, overlap=overlap)
-        smoothed.certify(100, 1000, 0.01, image_generator(0, 0))
+        smoothed = SmoothedClassifier(model, dist, 20, 200, device, overlap=overlap)
+        smoothed.certify(test_sample.renderer(), 100, 1000, 0.01, image_generator(0, 0))
         total = time.perf_counter() - start
-        return total, built, smoothed.timings["render"], smoothed.timings["model"]
+        return total, built, smoothed.votes.timings["render"], smoothed.votes.timings["model"]
 
     model_alone()
     certify()  # warm-up: numba compilation, allocator, cuDNN

@@ -76,7 +76,7 @@ def outcome(kind: str, outputs: Path):
     import mlflow
     import torch
 
-    from mrcert.certify_log import read_log
+    from mrcert.reporting.certify_log import read_log
 
     mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
     runs = mlflow.search_runs(search_all_experiments=True, output_format="list")

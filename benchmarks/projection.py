@@ -32,8 +32,8 @@ def main() -> None:
     import open3d as o3d
     import torch
 
-    from mrcert.geometry import motion_to_matrix
-    from mrcert.projection import locality_order, project
+    from mrcert.core.geometry import motion_to_matrix
+    from mrcert.core.projection import locality_order, project
     from mrcert.scenes import testscene
 
     torch.set_num_threads(args.threads)

@@ -12,17 +12,21 @@ from typing import Any
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from mrcert import config as mrcert_config
-from mrcert.checkpoints import bind_checkpoint
-from mrcert.errors import MrcertError
-from mrcert.identity import RunIdentity, identify
-from mrcert.inputs import check_inputs
-from mrcert.tasks import TASKS, RunContext
-from mrcert.tracking import fail_parent, find_runs, finished_run, task_run
+from mrcert.errors import ConfigError, MrcertError
+from mrcert.infra import config as mrcert_config
+from mrcert.infra.checkpoints import bind_checkpoint
+from mrcert.infra.identity import RunIdentity, identify
+from mrcert.infra.tasks import TASKS, RunContext
+from mrcert.infra.tracking import fail_parent, find_runs, finished_run, task_run
+from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")
+
+OmegaConf.register_new_resolver(
+    "mrcert_task_help", lambda: "\n".join(f"  {n:<10} {t.summary}" for n, t in TASKS.items()), replace=True
+)
 
 
 def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
@@ -37,7 +41,7 @@ def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
             runs = find_runs(cfg.tracking, key, finished=True, task="train")
             return runs[0].info.run_id if runs else None
 
-        cfg, train_run = bind_checkpoint(cfg, newest_train_run)
+        cfg, train_run = bind_checkpoint(cfg, newest_train_run, TASKS["train"].identity)
     return cfg, identify(cfg, task.identity, train_run)
 
 
@@ -49,6 +53,8 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     """
     try:
         mrcert_config.validate(cfg)
+        if cfg.task.name not in TASKS:
+            raise ConfigError("task.name", cfg.task.name, f"one of {', '.join(TASKS)}")
         cfg, ident = bind(cfg)
         task = TASKS[cfg.task.name]
         done = finished_run(cfg, ident) if task.reusable else None

@@ -14,11 +14,11 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
 from mrcert.__main__ import _user_error, check_writable
-from mrcert.certify_log import read_log
-from mrcert.config import CONF_DIR, validate
+from mrcert.core.geometry import AXES
 from mrcert.data.custom import read_poses
 from mrcert.errors import ConfigError, MrcertError
-from mrcert.geometry import AXES
+from mrcert.infra.config import CONF_DIR, validate
+from mrcert.reporting.certify_log import read_log
 from mrcert.scenes.scene import read_point_cloud
 
 ROOT = Path(__file__).resolve().parent.parent

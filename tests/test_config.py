@@ -7,9 +7,9 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from mrcert.config import CONF_DIR, validate
 from mrcert.errors import ConfigError
-from mrcert.identity import flatten
+from mrcert.infra.config import CONF_DIR, validate
+from mrcert.infra.identity import flatten
 
 GROUPS = sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra")
 
@@ -148,11 +148,11 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
     """Each job of each experiment, with every task it is meant for, composes and validates;
     every model an evaluation job looks up is one that a train job of the experiments makes.
     The fast run takes each experiment's first, second and last job; ``slow`` takes all."""
-    from mrcert.checkpoints import train_key
-    from mrcert.config import plain
-    from mrcert.identity import identify
-    from mrcert.tables import sweep_combos
-    from mrcert.tasks import TASKS
+    from mrcert.infra.checkpoints import train_key
+    from mrcert.infra.config import plain
+    from mrcert.infra.identity import identify
+    from mrcert.infra.tasks import TASKS
+    from mrcert.reporting.tables import sweep_combos
 
     assert set(EXPERIMENT_TASKS) == {p.stem for p in (CONF_DIR / "experiment").glob("*.yaml")}
     trained, evaluated = set(), {}
@@ -169,5 +169,7 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
             if task == "train":
                 trained.add(identify(plain(cfg), TASKS["train"].identity).key)
             else:
-                evaluated[train_key(cfg)] = f"experiment={experiment} task={task} {' '.join(combo)}"
+                evaluated[train_key(cfg, TASKS["train"].identity)] = (
+                    f"experiment={experiment} task={task} {' '.join(combo)}"
+                )
     assert {k: v for k, v in evaluated.items() if k not in trained} == {}

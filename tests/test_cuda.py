@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from mrcert.projection import locality_order, project
-from mrcert.smoothing import MotionSmoothedClassifier, SmoothingDistribution, image_generator
+from mrcert.core.projection import locality_order, project
+from mrcert.core.smoothing import SmoothedClassifier, SmoothingDistribution, image_generator
 from tests.conftest import PAPER_K, random_cloud, random_motions
 
 pytestmark = [
@@ -38,7 +38,7 @@ def test_cuda_projection_equals_the_cpu_kernel_bit_for_bit(seed):
 
 def _classifier(num_classes: int = 5) -> torch.nn.Module:
     torch.manual_seed(0)
-    from mrcert.models import SmallCNN
+    from mrcert.core.models import SmallCNN
 
     return torch.nn.Sequential(SmallCNN(num_classes, width=8)).eval()
 
@@ -53,8 +53,8 @@ def test_certify_on_cuda_gives_the_cpu_rows_up_to_model_rounding():
     for device in ("cpu", "cuda"):
         sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
         model = _classifier().to(device)
-        smoothed = MotionSmoothedClassifier(model, sample, dist, 5, batch_size=200, device=device)
-        rows[device] = [smoothed.certify(100, 1000, 0.01, image_generator(0, i)) for i in range(3)]
+        smoothed = SmoothedClassifier(model, dist, 5, batch_size=200, device=device)
+        rows[device] = [smoothed.certify(sample.renderer(), 100, 1000, 0.01, image_generator(0, i)) for i in range(3)]
     for cpu, gpu in zip(rows["cpu"], rows["cuda"], strict=True):
         assert gpu.prediction == cpu.prediction and abs(gpu.count_a - cpu.count_a) <= 10
 
@@ -68,8 +68,8 @@ def test_overlapped_rendering_on_cuda_gives_the_same_votes():
     sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
     model = _classifier().cuda()
     votes = [
-        MotionSmoothedClassifier(model, sample, dist, 5, 128, "cuda", overlap=overlap).sample_counts(
-            1000, image_generator(0, 7)
+        SmoothedClassifier(model, dist, 5, 128, "cuda", overlap=overlap).sample_counts(
+            sample.renderer(), 1000, image_generator(0, 7)
         )
         for overlap in (False, True)
     ]

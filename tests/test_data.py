@@ -12,14 +12,15 @@ import torch
 from hydra import compose, initialize_config_dir
 from PIL import Image
 
-from mrcert.config import CONF_DIR, validate
+from mrcert.core.crop import CropBound
+from mrcert.core.geometry import matrix_to_motion
+from mrcert.core.projection import camera_points
 from mrcert.data.cache import GENERATOR_VERSION
-from mrcert.data.datasets import Augment, load, render_poses
+from mrcert.data.datasets import Augment, render_poses
 from mrcert.data.protocols import look_at_poses
-from mrcert.data.samples import CropBound
+from mrcert.data.sources import load
 from mrcert.errors import ConfigError, MrcertError
-from mrcert.geometry import matrix_to_motion
-from mrcert.projection import camera_points
+from mrcert.infra.config import CONF_DIR, validate
 from mrcert.scenes import metaroom
 
 TINY = ["data.classes=[can,mug]", "data.room_density=0.03", "data.density=0.01"]

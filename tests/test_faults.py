@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from mrcert.__main__ import run_task
-from mrcert.certify_log import read_log
 from mrcert.errors import MrcertError
-from mrcert.store import FileLock
+from mrcert.infra.store import FileLock
+from mrcert.reporting.certify_log import read_log
 from tests.conftest import ROOT, TINY, compose_cfg, kill_when, run_cli
 
 TIMING = ["time", "seconds"]
@@ -210,7 +210,7 @@ def _write_cloud(path: Path) -> None:
 
 def test_a_checkpoint_of_another_model_config_is_named(checkpoints, tmp_path):
     cfg = compose_cfg([*certify_args(checkpoints["a"]), "model.net.width=16"], tmp_path)
-    from mrcert.checkpoints import load_classifier
+    from mrcert.infra.checkpoints import load_classifier
 
     with pytest.raises(MrcertError, match=r"trained with another model: model.net.width=8 \(checkpoint\) vs 16"):
         load_classifier(cfg, 3, torch.device("cpu"))
@@ -218,7 +218,7 @@ def test_a_checkpoint_of_another_model_config_is_named(checkpoints, tmp_path):
 
 def test_a_file_lock_is_exclusive_and_dies_with_its_process(tmp_path):
     path = tmp_path / "x.lock"
-    code = f"from mrcert.store import FileLock; import time; lock = FileLock('{path}'); lock.acquire(); "
+    code = f"from mrcert.infra.store import FileLock; import time; lock = FileLock('{path}'); lock.acquire(); "
     code += "print('held', flush=True); time.sleep(60)"
     holder = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"

@@ -3,7 +3,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from mrcert import geometry as g
+from mrcert.core import geometry as g
 
 
 def test_rotvec_matrix_match_scipy_and_round_trip(rng):

@@ -5,9 +5,9 @@ import copy
 
 import pytest
 
-from mrcert.config import CONF_DIR, plain
-from mrcert.identity import file_identity, flatten, identify
-from mrcert.tasks import TASKS
+from mrcert.infra.config import CONF_DIR, plain
+from mrcert.infra.identity import file_identity, flatten, identify
+from mrcert.infra.tasks import TASKS
 from tests.conftest import compose_cfg
 
 REQUIRED = {"import": ["task.path=certify.tsv"]}

@@ -11,10 +11,10 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from mrcert.config import validate
+from mrcert.core.geometry import axis_index, compose
+from mrcert.core.smoothing import SmoothingDistribution
 from mrcert.errors import ConfigError, MrcertError
-from mrcert.geometry import axis_index, compose
-from mrcert.smoothing import SmoothingDistribution
+from mrcert.infra.config import validate
 from tests.conftest import compose_cfg
 
 N = 400_000

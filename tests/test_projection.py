@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from mrcert import projection
-from mrcert.geometry import AXES, axis_index, compose, motion_to_matrix, rotvec_to_matrix
-from mrcert.projection import camera_points, project
+from mrcert.core import projection
+from mrcert.core.geometry import AXES, axis_index, compose, motion_to_matrix, rotvec_to_matrix
+from mrcert.core.projection import camera_points, project
 from tests.conftest import PAPER_K, random_cloud, random_motions
 
 H, W = 90, 160
@@ -269,7 +269,8 @@ def test_any_point_order_renders_the_images_of_the_original_order(backend, rng):
 
 
 def test_a_test_sample_renders_the_images_of_its_cloud_as_given(rng):
-    from mrcert.data.samples import CropBound, TestSample
+    from mrcert.core.crop import CropBound
+    from mrcert.data.samples import TestSample
 
     pts, cols = random_cloud(rng, n=20000)
     shuffled = torch.from_numpy(rng.permutation(len(pts)))

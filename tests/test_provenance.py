@@ -12,7 +12,7 @@ import mlflow
 import pytest
 
 from mrcert.__main__ import bind, run_task
-from mrcert.certify_log import read_log
+from mrcert.reporting.certify_log import read_log
 from tests.conftest import ROOT, TINY, compose_cfg, run_cli
 
 RECIPE = [*TINY, "train.epochs=2", "train.batch_size=8"]

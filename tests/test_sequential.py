@@ -5,8 +5,13 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from mrcert.sequential import BetaBinomialCS
-from mrcert.smoothing import MotionSmoothedClassifier, SmoothingDistribution, image_generator, lower_confidence_bound
+from mrcert.core.sequential import BetaBinomialCS
+from mrcert.core.smoothing import (
+    SmoothedClassifier,
+    SmoothingDistribution,
+    image_generator,
+    lower_confidence_bound,
+)
 from tests.test_smoothing import Constant, tiny_sample
 
 
@@ -39,17 +44,17 @@ def test_coverage_holds_at_every_look_simultaneously(p):
     assert missed / streams <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / streams)
 
 
-class Simulated(MotionSmoothedClassifier):
+class Simulated(SmoothedClassifier):
     """The smoothed classifier with its base votes simulated: class 1 with probability ``p``
     per sample (no rendering), so the real stopping code runs on thousands of streams."""
 
     def __init__(self, p: float, seed: int):
-        super().__init__(None, None, SmoothingDistribution(("tz",), (1.0,)), 2)
+        super().__init__(None, SmoothingDistribution(("tz",), (1.0,)), 2)
         self.p, self.rng = p, np.random.default_rng(seed)
 
-    def counts(self, motions):
-        ones = int((self.rng.random(len(motions)) < self.p).sum())
-        return np.array([len(motions) - ones, ones])
+    def sample_counts(self, render, n, generator, center=None):
+        ones = int((self.rng.random(n) < self.p).sum())
+        return np.array([n - ones, ones])
 
 
 def test_sequential_decision_error_rate_on_simulated_streams():
@@ -57,7 +62,7 @@ def test_sequential_decision_error_rate_on_simulated_streams():
     alpha, radius, look, n_max = 0.05, 1.0, 50, 3000
     p_true = norm.cdf(radius) - 0.01
     certs = [
-        Simulated(p_true, seed).certify_sequential(100, n_max, alpha, radius, look, image_generator(0, seed))
+        Simulated(p_true, seed).certify_sequential(None, 100, n_max, alpha, radius, look, image_generator(0, seed))
         for seed in range(400)
     ]
     errors = sum(c.prediction == 1 and c.radius >= radius for c in certs)
@@ -68,15 +73,15 @@ def test_sequential_decision_error_rate_on_simulated_streams():
 
 def test_sequential_certificates_follow_their_sequence_and_save_samples():
     dist = SmoothingDistribution(("tz",), (0.1,))
-    smoothed = MotionSmoothedClassifier(Constant(2), tiny_sample(), dist, 4, batch_size=64)
-    cert = smoothed.certify_sequential(100, 1000, 0.01, 0.1, 100, image_generator(0, 0))
+    smoothed, render = SmoothedClassifier(Constant(2), dist, 4, batch_size=64), tiny_sample().renderer()
+    cert = smoothed.certify_sequential(render, 100, 1000, 0.01, 0.1, 100, image_generator(0, 0))
     cs = BetaBinomialCS(0.01)
     assert cert.prediction == 2 and cert.count_a == cert.n and cert.n < 1000
     assert cert.p_a_lower == cs.lower(cert.n, cert.n) and cert.radius == 0.1 * norm.ppf(cert.p_a_lower)
     assert cert.radius >= 0.1  # it stopped because the requested radius was certified
     # Batch size does not change where it stops or what it returns.
-    other = MotionSmoothedClassifier(Constant(2), tiny_sample(), dist, 4, batch_size=7)
-    assert other.certify_sequential(100, 1000, 0.01, 0.1, 100, image_generator(0, 0)) == cert
+    other = SmoothedClassifier(Constant(2), dist, 4, batch_size=7)
+    assert other.certify_sequential(render, 100, 1000, 0.01, 0.1, 100, image_generator(0, 0)) == cert
 
 
 class Noisy(torch.nn.Module):
@@ -94,8 +99,8 @@ class Noisy(torch.nn.Module):
 
 def test_sequential_abstains_or_stops_when_the_radius_is_out_of_reach():
     dist = SmoothingDistribution(("tz",), (0.1,))
-    smoothed = MotionSmoothedClassifier(Noisy(), tiny_sample(), dist, 2, batch_size=100)
-    cert = smoothed.certify_sequential(100, 5000, 0.01, 0.25, 100, image_generator(0, 1))
+    smoothed = SmoothedClassifier(Noisy(), dist, 2, batch_size=100)
+    cert = smoothed.certify_sequential(tiny_sample().renderer(), 100, 5000, 0.01, 0.25, 100, image_generator(0, 1))
     cs = BetaBinomialCS(0.01)
     assert cs.upper(cert.count_a, cert.n) < norm.cdf(2.5) and cert.n < 5000
     assert cert.radius < 0.25

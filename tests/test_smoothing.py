@@ -12,16 +12,16 @@ from statsmodels.stats.proportion import proportion_confint
 from torch import nn
 
 from mrcert.__main__ import run_task
-from mrcert.certify_log import ResultLog, merge_logs, read_log
-from mrcert.data.samples import TestSample
-from mrcert.errors import MrcertError
-from mrcert.smoothing import (
+from mrcert.core.smoothing import (
     ABSTAIN,
-    MotionSmoothedClassifier,
+    SmoothedClassifier,
     SmoothingDistribution,
     image_generator,
     lower_confidence_bound,
 )
+from mrcert.data.samples import TestSample
+from mrcert.errors import MrcertError
+from mrcert.reporting.certify_log import ResultLog, merge_logs, read_log
 from tests.conftest import PAPER_K, TINY, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -72,20 +72,21 @@ def test_clopper_pearson_oracles():
 
 def test_constant_classifier_certifies_2_605_sigma():
     dist = SmoothingDistribution(("tz",), (0.1,))
-    cert = MotionSmoothedClassifier(Constant(2), tiny_sample(), dist, 4).certify(100, 1000, 0.01, image_generator(0, 0))
+    smoothed = SmoothedClassifier(Constant(2), dist, 4)
+    cert = smoothed.certify(tiny_sample().renderer(), 100, 1000, 0.01, image_generator(0, 0))
     assert (cert.prediction, cert.count_a) == (2, 1000)
     assert cert.radius == pytest.approx(0.1 * norm.ppf(0.01 ** (1 / 1000)), abs=1e-15)
     assert cert.radius / 0.1 == pytest.approx(2.605, abs=5e-4)
 
 
 def test_predict_abstains_on_ties_and_close_counts():
-    decide = MotionSmoothedClassifier.decide
+    decide = SmoothedClassifier.decide
     assert decide(np.array([50, 50, 0]), 0.01) == ABSTAIN
     assert decide(np.array([45, 55, 0]), 0.01) == ABSTAIN
     assert decide(np.array([0, 0, 0]), 0.01) == ABSTAIN
     assert decide(np.array([10, 0, 90]), 0.01) == 2
-    smoothed = MotionSmoothedClassifier(Constant(1), tiny_sample(), SmoothingDistribution(("rz",), (0.12,)), 4)
-    assert smoothed.predict(100, 0.01, image_generator(0, 3)) == 1
+    smoothed = SmoothedClassifier(Constant(1), SmoothingDistribution(("rz",), (0.12,)), 4)
+    assert smoothed.predict(tiny_sample().renderer(), 100, 0.01, image_generator(0, 3)) == 1
 
 
 def test_theorem_1_distribution():
@@ -219,16 +220,16 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
     smooth = run_task(cfg, tmp_path / "s")
     rows = read_log(tmp_path / "s" / "smooth.tsv", ["idx"])
     # Each row is PREDICT at that test pose, recomputed here through the classifier directly.
-    from mrcert.checkpoints import load_classifier
-    from mrcert.data.datasets import load
+    from mrcert.data.sources import load
+    from mrcert.infra.checkpoints import load_classifier
 
     bundle = load(cfg.data)
     samples = bundle.samples(crop=SmoothingDistribution(("tz",), (0.1,)).crop_bound(6.0))
     model = load_classifier(cfg, 3, "cpu")
     for _, row in rows.iterrows():
         sample = samples[int(row.idx)]
-        smoothed = MotionSmoothedClassifier(model, sample, SmoothingDistribution(("tz",), (0.1,)), 3)
-        assert row.predict == smoothed.predict(30, 0.01, image_generator(0, int(row.idx)))
+        smoothed = SmoothedClassifier(model, SmoothingDistribution(("tz",), (0.1,)), 3)
+        assert row.predict == smoothed.predict(sample.renderer(), 30, 0.01, image_generator(0, int(row.idx)))
         assert row.label == sample.label and row.correct == int(row.predict == sample.label)
     assert rows.idx.tolist() == [0, 1, 2] and smooth["num_images"] == 3
     assert smooth["smoothed_benign_accuracy"] == rows.correct.mean()
@@ -252,8 +253,8 @@ def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_predicti
     consistent with at most alpha = 0.01 (one-sided binomial test at the 99% level)."""
     from scipy.stats import binomtest
 
-    from mrcert.checkpoints import load_classifier
-    from mrcert.data.datasets import load
+    from mrcert.data.sources import load
+    from mrcert.infra.checkpoints import load_classifier
 
     cfg = tiny_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}"], tmp_path)
     bundle = load(cfg.data)
@@ -262,14 +263,14 @@ def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_predicti
     samples = bundle.samples(crop=dist.crop_bound(6.0))
     changed, trials = 0, 0
     for i in range(len(samples)):
-        smoothed = MotionSmoothedClassifier(model, samples[i], dist, 3)
-        cert = smoothed.certify(100, 1000, 0.01, image_generator(0, i))
+        smoothed, render = SmoothedClassifier(model, dist, 3), samples[i].renderer()
+        cert = smoothed.certify(render, 100, 1000, 0.01, image_generator(0, i))
         if cert.prediction == ABSTAIN:
             continue
         rng = np.random.default_rng(i)
         for k, a in enumerate(rng.uniform(-cert.radius, cert.radius, 5)):
             center = torch.tensor([0, 0, a, 0, 0, 0], dtype=torch.float64)
-            pred = smoothed.predict(2000, 0.001, image_generator(1, i, k), center)
+            pred = smoothed.predict(render, 2000, 0.001, image_generator(1, i, k), center)
             trials += 1
             changed += int(pred not in (cert.prediction, ABSTAIN))
     assert trials >= 20
@@ -286,8 +287,8 @@ class Brightness(nn.Module):
 
 def test_overlapped_rendering_gives_the_same_votes():
     dist = SmoothingDistribution(("rz",), (0.3,))
-    plain = MotionSmoothedClassifier(Brightness(), tiny_sample(), dist, 4, batch_size=100)
-    overlapped = MotionSmoothedClassifier(Brightness(), tiny_sample(), dist, 4, batch_size=100, overlap=True)
-    a = plain.sample_counts(450, image_generator(0, 9))
-    b = overlapped.sample_counts(450, image_generator(0, 9))
+    plain = SmoothedClassifier(Brightness(), dist, 4, batch_size=100)
+    overlapped = SmoothedClassifier(Brightness(), dist, 4, batch_size=100, overlap=True)
+    a = plain.sample_counts(tiny_sample().renderer(), 450, image_generator(0, 9))
+    b = overlapped.sample_counts(tiny_sample().renderer(), 450, image_generator(0, 9))
     assert a.sum() == 450 and (a > 0).sum() > 1 and np.array_equal(a, b)

@@ -12,10 +12,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mrcert import certify_log, tables
 from mrcert.__main__ import run_task
-from mrcert.cells import RunIndex
-from mrcert.certify_log import read_log
+from mrcert.reporting import certify_log, tables
+from mrcert.reporting.cells import RunIndex
+from mrcert.reporting.certify_log import read_log
+from mrcert.reporting.writers import write
 from tests.conftest import TINY, compose_cfg, run_cli
 
 # The tiny data and a short recipe; every cell of the tables gets the same overrides.
@@ -152,13 +153,16 @@ def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, 
 def test_written_files_keep_empty_cells_empty_and_latex_balanced(store, tmp_path):
     src = source(store)
     df = tables.certified_table(src)
-    md, tex, csv = tables.write(df, tmp_path / "t3", "Table 3")
+    md, tex, csv = write(df, tmp_path / "t3", "Table 3: $x$ & y_z ~^")
     back = pd.read_csv(csv, keep_default_na=False)
     assert back.loc[back.Model == "Smoothed Augmented SmallCNN", "Certified Acc"].tolist() == [""]
     assert "nan" not in md.read_text()
+    vanilla = df.loc[("Tz", "Smoothed Vanilla SmallCNN"), "Certified Acc"]
+    assert f"| {vanilla:.3f} " in md.read_text()  # numbers as written, not re-parsed
     lines = [ln for ln in tex.read_text().splitlines() if ln.endswith(r"\\")]
     columns = len(df.reset_index().columns)
     assert len(lines) == 1 + len(df) and all(ln.count("&") - ln.count(r"\&") == columns - 1 for ln in lines)
+    assert r"\caption{Table 3: \$x\$ \& y\_z \textasciitilde{}\textasciicircum{}}" in tex.read_text()
     shown = tables.certified_table(source(store), show_paper=True)
     assert shown.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == ""  # no paper value for a SmallCNN
 

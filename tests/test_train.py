@@ -8,13 +8,14 @@ import pytest
 import torch
 
 from mrcert.__main__ import bind, run_task
-from mrcert.checkpoints import load_classifier, local_checkpoint
-from mrcert.data.datasets import Augment, load
+from mrcert.core.geometry import matrix_to_motion
+from mrcert.core.models import build_model
+from mrcert.core.projection import camera_points, project
+from mrcert.data.datasets import Augment
 from mrcert.data.holdout import validation_split
+from mrcert.data.sources import load
 from mrcert.errors import MrcertError
-from mrcert.geometry import matrix_to_motion
-from mrcert.models import build_model
-from mrcert.projection import camera_points, project
+from mrcert.infra.checkpoints import load_classifier, local_checkpoint
 from mrcert.tasks.train import accuracy, as_tensors
 from tests.conftest import TINY, compose_cfg, kill_when, run_cli
 

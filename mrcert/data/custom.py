@@ -19,8 +19,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from mrcert.data.datasets import PosedCloudData, file_digest
-from mrcert.data.synthetic import Split
+from mrcert.data.datasets import PosedCloudData, Split, file_digest
 from mrcert.errors import MrcertError
 from mrcert.scenes.scene import read_point_cloud
 

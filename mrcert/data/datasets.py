@@ -1,6 +1,5 @@
-"""torch Datasets of rendered images and of re-renderable test samples, for every data source.
-
-:func:`load` turns a ``data`` config into a :class:`DataBundle` with
+"""torch Datasets of rendered images and of re-renderable test samples: what every data source
+provides (the sources themselves: :mod:`mrcert.data.sources`). A :class:`DataBundle` has
 
 * ``train()`` / ``test()``: :class:`ImageSet` of rendered images (cached under
   ``data.cache_dir``; training images optionally motion-augmented on one axis),
@@ -21,14 +20,24 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset
 
+from mrcert.core.crop import CropBound
+from mrcert.core.geometry import axis_index, matrix_to_motion, motion_to_matrix
+from mrcert.core.projection import camera_points, project, to_uint8
 from mrcert.data.cache import cached_arrays
-from mrcert.data.samples import CropBound, TestSample
-from mrcert.data.synthetic import Split, SyntheticSource
-from mrcert.errors import MrcertError
-from mrcert.geometry import axis_index, matrix_to_motion, motion_to_matrix
-from mrcert.imaging import to_uint8
-from mrcert.projection import camera_points, project
+from mrcert.data.samples import TestSample
 from mrcert.scenes.scene import intrinsics
+
+
+@dataclass(frozen=True)
+class Split:
+    """Poses (N, 4, 4) camera-to-world, protocol parameters (N, 4) and labels (N,)."""
+
+    poses: np.ndarray
+    params: np.ndarray
+    labels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.labels)
 
 
 @dataclass(frozen=True)
@@ -205,44 +214,9 @@ class PosedCloudData(DataBundle):
         return SampleSet(split.labels, make)
 
 
-class SyntheticData(PosedCloudData):
-    def __init__(self, data: DictConfig):
-        super().__init__(data)
-        self.source = SyntheticSource(data)
-        self.classes = self.source.classes
-
-    def cloud(self, label: int):
-        return self.source.cloud(label)
-
-    def split(self, name: str) -> Split:
-        return self.source.split(name)
-
-    def identity(self) -> dict[str, Any]:
-        keep = ("source", "seed", "density", "room_density", "protocol")
-        return {
-            k: OmegaConf.to_container(self.data[k]) if OmegaConf.is_config(self.data[k]) else self.data[k] for k in keep
-        } | {"classes": self.classes}
-
-
 def file_digest(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
-
-
-def load(data: DictConfig) -> DataBundle:
-    """The data bundle a ``data`` config names."""
-    from mrcert.data.custom import CustomData
-    from mrcert.data.release import ReleasedMetaRoom
-
-    sources = {
-        "metaroom_synth": SyntheticData,
-        "tabletop_synth": SyntheticData,
-        "custom": CustomData,
-        "metaroom": ReleasedMetaRoom,
-    }
-    if data.source not in sources:
-        raise MrcertError(f"data.source={data.source!r} is not a dataset; allowed: {', '.join(sources)}")
-    return sources[data.source](data)

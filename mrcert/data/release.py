@@ -19,11 +19,12 @@ import torch
 from omegaconf import DictConfig
 from PIL import Image
 
+from mrcert.core.crop import CropBound
+from mrcert.core.geometry import matrix_to_motion
+from mrcert.core.projection import camera_points
 from mrcert.data.datasets import Augment, DataBundle, ImageSet, SampleSet
-from mrcert.data.samples import CropBound, TestSample
+from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
-from mrcert.geometry import matrix_to_motion
-from mrcert.projection import camera_points
 
 INTRINSICS_SCALE = 8.0
 _ALLOWED = (

@@ -11,27 +11,16 @@ never changes the others.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from mrcert.data.datasets import PosedCloudData, Split
 from mrcert.data.protocols import PoseSet, ring_poses, sample_poses
 from mrcert.errors import MrcertError
 from mrcert.scenes import metaroom, tabletop
-
-
-@dataclass(frozen=True)
-class Split:
-    """Poses (N, 4, 4) camera-to-world, protocol parameters (N, 4) and labels (N,)."""
-
-    poses: np.ndarray
-    params: np.ndarray
-    labels: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.labels)
 
 
 def _ranges(train: DictConfig) -> dict[str, tuple[float, float]]:
@@ -116,3 +105,22 @@ class SyntheticSource:
         poses = PoseSet(shifted, self._target()).poses
         labels = np.concatenate([np.full(len(s), label) for label, s in sets]).astype(np.int64)
         return Split(poses, params, labels)
+
+
+class SyntheticData(PosedCloudData):
+    def __init__(self, data: DictConfig):
+        super().__init__(data)
+        self.source = SyntheticSource(data)
+        self.classes = self.source.classes
+
+    def cloud(self, label: int):
+        return self.source.cloud(label)
+
+    def split(self, name: str) -> Split:
+        return self.source.split(name)
+
+    def identity(self) -> dict[str, Any]:
+        keep = ("source", "seed", "density", "room_density", "protocol")
+        return {
+            k: OmegaConf.to_container(self.data[k]) if OmegaConf.is_config(self.data[k]) else self.data[k] for k in keep
+        } | {"classes": self.classes}

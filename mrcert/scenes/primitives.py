@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from mrcert.geometry import rotvec_to_matrix
+from mrcert.core.geometry import rotvec_to_matrix
 
 
 @dataclass

@@ -10,8 +10,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from mrcert.core.projection import Backend, project
 from mrcert.errors import MrcertError
-from mrcert.projection import Backend, project
 
 
 @dataclass
@@ -77,23 +77,3 @@ def _read_point_cloud(path_str: str, size: int, mtime_ns: int) -> tuple[np.ndarr
     if raw.dtype == np.uint8 or colors.max() > 1:
         colors = colors / 255.0
     return points, colors.astype(np.float32)
-
-
-def load_scene(data: DictConfig, device: torch.device | str = "cpu") -> Scene:
-    """The scene a ``data`` config names: the built-in test scene or a point cloud file."""
-    if data.source == "builtin":
-        from mrcert.scenes import testscene
-
-        points, colors = testscene.build(data.density)
-    elif data.source == "file":
-        points, colors = read_point_cloud(data.path)
-    else:
-        raise MrcertError(f"data.source={data.source!r} is not allowed: builtin or file")
-    return Scene(
-        torch.from_numpy(points).to(device),
-        torch.from_numpy(np.ascontiguousarray(colors)).to(device),
-        intrinsics(data.image),
-        int(data.image.height),
-        int(data.image.width),
-        float(data.image.background),
-    )

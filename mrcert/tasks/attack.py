@@ -17,11 +17,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from mrcert.certify_log import ResultLog, read_log
+from mrcert.core.geometry import axis_index
+from mrcert.core.smoothing import ABSTAIN, image_generator
 from mrcert.errors import MrcertError
-from mrcert.geometry import axis_index
-from mrcert.smoothing import ABSTAIN, image_generator
-from mrcert.tasks import RunContext
+from mrcert.infra.tasks import RunContext
+from mrcert.reporting import metrics as summaries
+from mrcert.reporting.certify_log import ResultLog, read_log
 from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
 
 COLUMNS = [
@@ -40,21 +41,6 @@ COLUMNS = [
 
 
 LOG = "attack.tsv"
-
-
-def summarize(df, cfg: DictConfig) -> dict[str, float]:
-    """Benign and K-perturbed accuracies of a (possibly merged) attack log."""
-    metrics = {
-        "base_benign_accuracy": float(df["base_benign"].mean()),
-        "base_robust_accuracy": float(df["base_robust"].mean()),
-        "k": float(cfg.attack.k),
-        "attack_radius": float(cfg.attack.radius),
-        "num_images": float(len(df)),
-        "seconds_per_image": float(df["seconds"].mean()),
-    }
-    if cfg.task.smoothed:
-        metrics["smoothed_robust_accuracy"] = float((df["smoothed_robust"] == 1).mean())
-    return metrics
 
 
 def attack_motions(attack: DictConfig, axis: str, seed: int, index: int) -> torch.Tensor:
@@ -103,12 +89,11 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "smoothed_failure": "-",
         }
         if t.smoothed:
-            smoothed = ev.smoothed(sample, cfg)
-            votes = []
+            render, votes = ev.render(sample), []
             for k, m in enumerate(motions):
-                counts = smoothed.sample_counts(int(t.n), image_generator(cfg.seed, i, "predict", k), m)
+                counts = ev.smoothed.sample_counts(render, int(t.n), image_generator(cfg.seed, i, "predict", k), m)
                 votes.append(counts[sample.label])
-                decision = smoothed.decide(counts, float(t.alpha))
+                decision = ev.smoothed.decide(counts, float(t.alpha))
                 if decision != sample.label:
                     failure = "abstain" if decision == ABSTAIN else "wrong"
                     row |= {
@@ -122,6 +107,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         return row
 
     run_per_image(log, ev.indices, attack_one, f"attack {cfg.attack.name} k={cfg.attack.k}")
-    metrics = summarize(read_log(log.path, COLUMNS), cfg)
+    metrics = summaries.attack(read_log(log.path, COLUMNS), cfg)
     log_outputs(ctx, metrics, log.path)
     return metrics

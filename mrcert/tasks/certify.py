@@ -6,13 +6,15 @@ and splits the test set across jobs with ``task.shard`` / ``task.num_shards``.
 
 from __future__ import annotations
 
+import textwrap
 from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert import certify_log
-from mrcert.smoothing import image_generator
-from mrcert.tasks import RunContext
+from mrcert.core.smoothing import image_generator
+from mrcert.infra.tasks import RunContext
+from mrcert.reporting import certify_log
+from mrcert.reporting.plots import curve_panels
 from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
 
 
@@ -24,23 +26,15 @@ def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, regi
     grid.to_csv(grid_path, index=False)
     for k, acc in enumerate(grid["certified_accuracy"]):
         ctx.tracker.log_metrics({"certified_accuracy_at_step": acc}, step=k)
-    curve = certify_log.plot_curve(df, ctx.output_dir / "certified_accuracy.png", f"{title}\n{region}", cfg_radius)
+    curve = ctx.output_dir / "certified_accuracy.png"
+    suptitle = textwrap.fill(region, 70)
+    curve_panels({title: {"": certify_log.curve(df)}}, [curve], suptitle, marks={title: cfg_radius}, columns=1)
     (ctx.output_dir / "region.txt").write_text(region + "\n")
     log_outputs(ctx, metrics, grid_path, curve, ctx.output_dir / "region.txt")
     return metrics
 
 
 LOG = "certify.tsv"
-
-
-def summarize(df, cfg: DictConfig) -> dict[str, float]:
-    """The headline metrics of a (possibly merged) certify log: certified accuracy at
-    ``motion.radius`` and the rest of :func:`mrcert.certify_log.metrics`."""
-    radius = float(cfg.motion.radius)
-    metrics = certify_log.metrics(df, radius, float(cfg.motion.radius_step), radius)[0]
-    if "n" in df.columns:
-        metrics["mean_samples"] = float(df["n"].mean())
-    return metrics
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -51,13 +45,13 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
     def certify_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
-        smoothed, generator = ev.smoothed(sample, cfg), image_generator(cfg.seed, i)
+        render, generator = ev.render(sample), image_generator(cfg.seed, i)
         if t.sequential:
-            cert = smoothed.certify_sequential(
-                int(t.n0), int(t.n), float(t.alpha), float(cfg.motion.radius), int(t.look), generator
+            cert = ev.smoothed.certify_sequential(
+                render, int(t.n0), int(t.n), float(t.alpha), float(cfg.motion.radius), int(t.look), generator
             )
         else:
-            cert = smoothed.certify(int(t.n0), int(t.n), float(t.alpha), generator)
+            cert = ev.smoothed.certify(render, int(t.n0), int(t.n), float(t.alpha), generator)
         return {
             "label": sample.label,
             "predict": cert.prediction,

@@ -11,14 +11,15 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
-from mrcert.certify_log import ResultLog
-from mrcert.checkpoints import load_classifier
-from mrcert.data.datasets import DataBundle, SampleSet, load
+from mrcert.core.smoothing import Render, SmoothedClassifier, SmoothingDistribution
+from mrcert.data.datasets import DataBundle, SampleSet
 from mrcert.data.samples import TestSample
+from mrcert.data.sources import load
 from mrcert.errors import MrcertError
-from mrcert.runtime import resolve_device
-from mrcert.smoothing import MotionSmoothedClassifier, SmoothingDistribution
-from mrcert.tasks import RunContext
+from mrcert.infra.checkpoints import load_classifier
+from mrcert.infra.runtime import resolve_device
+from mrcert.infra.tasks import RunContext
+from mrcert.reporting.certify_log import ResultLog
 
 
 def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards: int) -> list[int]:
@@ -31,24 +32,22 @@ def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards
 
 @dataclass
 class Evaluation:
+    """A job's test images, its trained base classifier, and the smoothed classifier built on it."""
+
     bundle: DataBundle
     samples: SampleSet
     model: torch.nn.Module
-    distribution: SmoothingDistribution
+    smoothed: SmoothedClassifier
     indices: list[int]
     device: torch.device
+    backend: str
 
-    def smoothed(self, sample: TestSample, cfg: DictConfig) -> MotionSmoothedClassifier:
-        return MotionSmoothedClassifier(
-            self.model,
-            sample,
-            self.distribution,
-            len(self.bundle.classes),
-            int(cfg.task.batch_size),
-            self.device,
-            cfg.task.get("backend", "auto"),
-            overlap=self.device.type == "cuda",  # rendering beside the model pays off when it runs on a GPU
-        )
+    @property
+    def distribution(self) -> SmoothingDistribution:
+        return self.smoothed.distribution
+
+    def render(self, sample: TestSample) -> Render:
+        return sample.renderer(self.backend)
 
 
 def prepare(cfg: DictConfig) -> Evaluation:
@@ -62,7 +61,9 @@ def prepare(cfg: DictConfig) -> Evaluation:
     samples = bundle.samples(downsampling=downsampling, crop=distribution.crop_bound(float(t.crop_sigmas)))
     model = load_classifier(cfg, len(bundle.classes), device)
     indices = job_indices(len(samples), int(t.skip), t.get("max"), int(t.shard), int(t.num_shards))
-    return Evaluation(bundle, samples, model, distribution, indices, device)
+    overlap = device.type == "cuda"  # rendering beside the model pays off when it runs on a GPU
+    smoothed = SmoothedClassifier(model, distribution, len(bundle.classes), int(t.batch_size), device, overlap)
+    return Evaluation(bundle, samples, model, smoothed, indices, device, str(t.get("backend", "auto")))
 
 
 def run_per_image(log: ResultLog, indices: list[int], work: Callable[[int], dict[str, Any]], desc: str) -> int:

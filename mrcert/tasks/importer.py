@@ -12,17 +12,10 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert import certify_log
-from mrcert.certify_log import read_log
-from mrcert.smoothing import SmoothingDistribution
-from mrcert.tasks import RunContext
+from mrcert.core.smoothing import SmoothingDistribution
+from mrcert.infra.tasks import RunContext
+from mrcert.reporting.certify_log import read_log
 from mrcert.tasks.certify import LOG, report
-
-
-def summarize(df, cfg: DictConfig) -> dict[str, float]:
-    """The certify metrics of an imported log, at its own ``task.radius``."""
-    radius = float(cfg.task.radius)
-    return certify_log.metrics(df, radius, float(cfg.task.radius_step), radius)[0]
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:

@@ -17,16 +17,15 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from mrcert.core.geometry import AXES, axis_index
 from mrcert.data.cache import folder_size
-from mrcert.data.datasets import Augment, SyntheticData, load
+from mrcert.data.datasets import Augment
+from mrcert.data.sources import is_scene, load, load_scene
+from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
-from mrcert.geometry import AXES, axis_index
-from mrcert.imaging import contact_sheet, save_png
-from mrcert.runtime import resolve_device
-from mrcert.scenes import load_scene
-from mrcert.tasks import RunContext
-
-SCENE_SOURCES = ("builtin", "file")
+from mrcert.infra.runtime import resolve_device
+from mrcert.infra.tasks import RunContext
+from mrcert.reporting.imaging import contact_sheet, save_png
 
 
 def motion_grid(axes: list[str], num: int, extent: dict[str, float]) -> tuple[torch.Tensor, list[tuple[str, float]]]:
@@ -57,7 +56,7 @@ def _grid_sheet(images: torch.Tensor, axes: list[str], num: int, labels, path, t
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
-    if cfg.data.source in SCENE_SOURCES:
+    if is_scene(cfg.data):
         return render_scene(cfg, ctx)
     return render_dataset(cfg, ctx)
 

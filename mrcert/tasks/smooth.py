@@ -6,23 +6,14 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert.certify_log import ResultLog, read_log
-from mrcert.smoothing import ABSTAIN, image_generator
-from mrcert.tasks import RunContext
+from mrcert.core.smoothing import image_generator
+from mrcert.infra.tasks import RunContext
+from mrcert.reporting import metrics as summaries
+from mrcert.reporting.certify_log import ResultLog, read_log
 from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
 
 COLUMNS = ["idx", "label", "predict", "correct", "n", "axis", "seconds"]
 LOG = "smooth.tsv"
-
-
-def summarize(df, cfg: DictConfig) -> dict[str, float]:
-    """Smoothed benign accuracy (abstain = wrong) of a (possibly merged) smooth log."""
-    return {
-        "smoothed_benign_accuracy": float(df["correct"].mean()),
-        "abstain_rate": float((df["predict"] == ABSTAIN).mean()),
-        "num_images": float(len(df)),
-        "seconds_per_image": float(df["seconds"].mean()),
-    }
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -32,7 +23,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
     def predict_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
-        pred = ev.smoothed(sample, cfg).predict(int(t.n), float(t.alpha), image_generator(cfg.seed, i))
+        pred = ev.smoothed.predict(ev.render(sample), int(t.n), float(t.alpha), image_generator(cfg.seed, i))
         return {
             "label": sample.label,
             "predict": pred,
@@ -42,6 +33,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         }
 
     run_per_image(log, ev.indices, predict_one, "smooth")
-    metrics = summarize(read_log(log.path, COLUMNS), cfg)
+    metrics = summaries.smooth(read_log(log.path, COLUMNS), cfg)
     log_outputs(ctx, metrics, log.path)
     return metrics

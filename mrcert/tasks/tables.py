@@ -10,11 +10,12 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from mrcert import tables
-from mrcert.cells import RunIndex
 from mrcert.errors import MrcertError
-from mrcert.tasks import RunContext
-from mrcert.tracking import configure, ensure_experiment
+from mrcert.infra.tasks import RunContext
+from mrcert.infra.tracking import configure, ensure_experiment
+from mrcert.reporting import tables
+from mrcert.reporting.cells import RunIndex
+from mrcert.reporting.writers import as_text, markdown, write
 
 SOURCES = {"runs": "certify", "import": "import"}
 
@@ -67,8 +68,8 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     metrics: dict[str, float] = {}
     for name, (df, caption) in built.items():
-        paths = tables.write(df, out / name, caption)
-        paths += tables.write(src.sources(name), out / f"{name}_sources", f"{caption}: the runs behind each cell")
+        paths = write(df, out / name, caption)
+        paths += write(src.sources(name), out / f"{name}_sources", f"{caption}: the runs behind each cell")
         for path in paths:
             ctx.tracker.log_artifact(path, "tables")
         values = df.to_numpy().ravel() if len(df) else np.array([])
@@ -79,7 +80,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     for path in (figure, pdf):
         ctx.tracker.log_artifact(path, "tables")
     if t.page:
-        from mrcert.results_page import write_page
+        from mrcert.reporting.results_page import write_page
 
         table = tables.certified_table(src, show_paper=True, name="page")
         command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
@@ -89,7 +90,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     ctx.tracker.log_metrics(metrics)
     shown = built[t.print][0]
     print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
-    print(tables.markdown(shown.reset_index().map(tables.format_cell)))
+    print(markdown(as_text(shown)))
     sources = src.sources(t.print)
     gaps = sources[sources["note"] != ""] if len(sources) else sources
     if len(gaps):

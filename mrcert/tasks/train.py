@@ -21,13 +21,14 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from tqdm import tqdm
 
-from mrcert import checkpoints
-from mrcert.data.datasets import Augment, ImageSet, load
+from mrcert.core.models import build_model
+from mrcert.data.datasets import Augment, ImageSet
 from mrcert.data.holdout import validation_split
+from mrcert.data.sources import load
 from mrcert.errors import MrcertError
-from mrcert.models import build_model
-from mrcert.runtime import resolve_device
-from mrcert.tasks import RunContext
+from mrcert.infra import checkpoints
+from mrcert.infra.runtime import resolve_device
+from mrcert.infra.tasks import RunContext
 
 
 def as_tensors(images: ImageSet) -> tuple[torch.Tensor, torch.Tensor]:

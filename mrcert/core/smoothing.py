@@ -10,19 +10,19 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from scipy.stats import beta, binomtest, norm
 
-from mrcert.data.samples import CropBound, TestSample
+from mrcert.core.crop import CropBound
+from mrcert.core.geometry import axis_index, compose
 from mrcert.errors import MrcertError
-from mrcert.geometry import axis_index, compose
 
 ABSTAIN = -1
 """The smoothed classifier's answer when it cannot decide at the requested confidence."""
@@ -164,44 +164,28 @@ class Certificate:
     n: int = 0  # estimation samples drawn (the sequential mode may stop early)
 
 
-class MotionSmoothedClassifier:
-    """g(x) = argmax_c P(h(O(V, a + eps)) = c), eps ~ the smoothing distribution.
+Render = Callable[[torch.Tensor], torch.Tensor]
+"""What a smoothed classifier classifies: motions (B, 6) -> images (B, C, H, W). For camera motion
+smoothing it is a test sample re-rendered under each motion (:meth:`TestSample.renderer`);
+another smoothing method plugs in here."""
 
-    ``h`` is the base classifier, ``V`` the test sample's scene and ``a`` the motion it is
-    looked at from (zero for the test pose). Guarantee (Cohen et al. 2019, Theorem 1 of the
-    paper): if :meth:`certify` returns class ``c`` with radius ``R``, then with probability at
-    least ``1 - alpha`` over its sampling, ``g(phi(x, delta)) = c`` for every camera motion
-    ``delta`` on the smoothed components inside the region of :meth:`SmoothingDistribution.region`
-    (``|delta| < R`` on one axis). :meth:`predict` returns ``g(x)`` or ``ABSTAIN``, and is wrong
-    with probability at most ``alpha``.
+
+class VoteCounter:
+    """The base classifier's votes over the images of a :data:`Render`, in batches.
+
+    With ``overlap``, a worker thread renders the next batch while the model classifies the
+    current one (the projection kernel and torch both release the GIL). ``timings`` adds up
+    the seconds spent waiting for renders and in the model (for benchmarks).
     """
 
-    def __init__(
-        self,
-        base: torch.nn.Module,
-        sample: TestSample,
-        distribution: SmoothingDistribution,
-        num_classes: int,
-        batch_size: int = 200,
-        device: torch.device | str = "cpu",
-        backend: str = "auto",
-        overlap: bool = False,
-    ):
-        self.base, self.sample, self.distribution = base, sample, distribution
-        self.num_classes, self.batch_size, self.device, self.backend = num_classes, batch_size, device, backend
-        self.overlap = overlap
-        self.timings = {"render": 0.0, "model": 0.0}  # seconds waiting for renders, and in the base classifier
+    def __init__(self, base: torch.nn.Module, num_classes: int, batch_size: int = 200, device="cpu", overlap=False):
+        self.base, self.num_classes, self.batch_size = base, num_classes, batch_size
+        self.device, self.overlap = device, overlap
+        self.timings = {"render": 0.0, "model": 0.0}
 
     @torch.inference_mode()
-    def counts(self, motions: torch.Tensor) -> np.ndarray:
-        """Votes of the base classifier over the renders at ``motions`` (B, 6), in batches.
-
-        With ``overlap``, a worker thread renders the next batch while the model classifies
-        the current one (the projection kernel and torch both release the GIL); ``timings``
-        then counts only the time the model waited for renders.
-        """
+    def __call__(self, render: Render, motions: torch.Tensor) -> np.ndarray:
         batches = [motions[s : s + self.batch_size] for s in range(0, len(motions), self.batch_size)]
-        render = partial(self._render, backend=self.backend)
         votes = np.zeros(self.num_classes, np.int64)
         with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
             pending = pool.submit(render, batches[0]) if pool and batches else None
@@ -220,12 +204,38 @@ class MotionSmoothedClassifier:
                 votes += np.bincount(predictions, minlength=self.num_classes)
         return votes
 
-    def _render(self, motions: torch.Tensor, backend: str) -> torch.Tensor:
-        return self.sample.render(motions, backend=backend)[0]
 
-    def sample_counts(self, n: int, generator: torch.Generator, center: torch.Tensor | None = None) -> np.ndarray:
+class SmoothedClassifier:
+    """g(x) = argmax_c P(h(O(V, a o eps)) = c), eps ~ the smoothing distribution.
+
+    Built once from the base classifier ``h``, the distribution and the number of classes;
+    :meth:`certify` and :meth:`predict` take the input: a :data:`Render` of the test sample's
+    scene ``V``, and ``a`` is the motion it is looked at from (zero for the test pose).
+    Guarantee (Cohen et al. 2019; Theorem 1 of the paper, for the combinations
+    :func:`licensed` admits): if :meth:`certify` returns class ``c`` with radius ``R``, then with
+    probability at least ``1 - alpha`` over its sampling, ``g(phi(x, delta)) = c`` for every
+    camera motion ``delta`` on the smoothed components inside the region of
+    :meth:`SmoothingDistribution.region` (``|delta| < R`` on one axis). :meth:`predict` returns
+    ``g(x)`` or :data:`ABSTAIN`, and is wrong with probability at most ``alpha``.
+    """
+
+    def __init__(
+        self,
+        base: torch.nn.Module,
+        distribution: SmoothingDistribution,
+        num_classes: int,
+        batch_size: int = 200,
+        device: torch.device | str = "cpu",
+        overlap: bool = False,
+    ):
+        self.distribution = distribution
+        self.votes = VoteCounter(base, num_classes, batch_size, device, overlap)
+
+    def sample_counts(
+        self, render: Render, n: int, generator: torch.Generator, center: torch.Tensor | None = None
+    ) -> np.ndarray:
         """Votes over ``n`` motions ``center o eps`` (Lemma 1): the camera moved by ``center``,
-        then by the noise in its own frame. On one axis this is ``center + eps`` exactly."""
+        then by the noise in its own frame. On the one smoothed axis this is ``center + eps`` exactly."""
         motions = self.distribution.sample(n, generator)
         if center is not None:
             center = center.to(torch.float64).reshape(1, 6)
@@ -234,11 +244,13 @@ class MotionSmoothedClassifier:
                 motions = motions + center  # along the one smoothed axis composition is addition, exactly
             else:
                 motions = compose(center.expand(n, 6), motions)
-        return self.counts(motions)
+        return self.votes(render, motions)
 
-    def predict(self, n: int, alpha: float, generator: torch.Generator, center: torch.Tensor | None = None) -> int:
+    def predict(
+        self, render: Render, n: int, alpha: float, generator: torch.Generator, center: torch.Tensor | None = None
+    ) -> int:
         """PREDICT at the pose moved by ``center`` (default: the test pose itself)."""
-        return self.decide(self.sample_counts(n, generator, center), alpha)
+        return self.decide(self.sample_counts(render, n, generator, center), alpha)
 
     @staticmethod
     def decide(counts: np.ndarray, alpha: float) -> int:
@@ -250,12 +262,12 @@ class MotionSmoothedClassifier:
             return ABSTAIN
         return int(top2[0])
 
-    def certify(self, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
+    def certify(self, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
         """CERTIFY: select the top class on ``n0`` samples, estimate its probability on ``n``
         fresh samples, and certify ``radius(pA_lower)`` when ``pA_lower >= 1/2``."""
-        selection = self.sample_counts(n0, generator)
+        selection = self.sample_counts(render, n0, generator)
         c_a = int(np.argmax(selection))
-        count_a = int(self.sample_counts(n, generator)[c_a])
+        count_a = int(self.sample_counts(render, n, generator)[c_a])
         p_a = lower_confidence_bound(count_a, n, alpha)
         return self._certificate(c_a, count_a, n, p_a)
 
@@ -265,27 +277,27 @@ class MotionSmoothedClassifier:
         return Certificate(c_a, self.distribution.radius(p_a), count_a, p_a, n)
 
     def certify_sequential(
-        self, n0: int, n_max: int, alpha: float, radius: float, look: int, generator: torch.Generator
+        self, render: Render, n0: int, n_max: int, alpha: float, radius: float, look: int, generator: torch.Generator
     ) -> Certificate:
         """CERTIFY with optional stopping, for a requested ``radius``.
 
         After ``n0`` selection samples, estimation samples are drawn ``look`` at a time and the
-        anytime-valid confidence sequence of :mod:`mrcert.sequential` is checked after each
+        anytime-valid confidence sequence of :mod:`mrcert.core.sequential` is checked after each
         look: it stops once the lower bound reaches the probability that ``radius`` needs, or
         once the upper bound shows that it never will, or at ``n_max``. The radius reported is
         ``radius(lower bound at the stop)``, valid at that data-dependent time because the
         sequence holds at all times at once (probability >= 1 - alpha). Looks are fixed in
         number of samples, so the result does not depend on the batch size.
         """
-        from mrcert.sequential import BetaBinomialCS
+        from mrcert.core.sequential import BetaBinomialCS
 
-        c_a = int(np.argmax(self.sample_counts(n0, generator)))
+        c_a = int(np.argmax(self.sample_counts(render, n0, generator)))
         cs = BetaBinomialCS(alpha)
         need = max(self.distribution.probability_for(radius), 0.5)
         count_a, t = 0, 0
         while t < n_max:
             m = min(look, n_max - t)
-            count_a += int(self.sample_counts(m, generator)[c_a])
+            count_a += int(self.sample_counts(render, m, generator)[c_a])
             t += m
             if cs.lower(count_a, t) >= need or cs.upper(count_a, t) < need:
                 break

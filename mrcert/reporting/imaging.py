@@ -9,10 +9,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-
-def to_uint8(images: torch.Tensor) -> np.ndarray:
-    """(..., C, H, W) float in [0, 1] to (..., H, W, C) uint8; exact for values that are k/255."""
-    return (images.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).movedim(-3, -1).numpy()
+from mrcert.core.projection import to_uint8
 
 
 def _pil_array(image: torch.Tensor) -> np.ndarray:

@@ -3,7 +3,7 @@
 A missing or unreadable checkpoint, point cloud, poses file or imported log stops the command
 in seconds with one line naming the key and the file, before any data is prepared and before
 an MLflow run is created (so no FAILED run is left behind). The keys checked are the ones a
-task's identity declares as files (:class:`mrcert.identity.Identity`).
+task's identity declares as files (:class:`mrcert.infra.identity.Identity`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from mrcert.errors import MrcertError
-from mrcert.identity import Identity
+from mrcert.infra.identity import Identity
 
 
 def _checkpoint(path: Path) -> None:
-    from mrcert.checkpoints import read_checkpoint
+    from mrcert.infra.checkpoints import read_checkpoint
 
     read_checkpoint(path)
 
@@ -37,7 +37,7 @@ def _poses(path: Path) -> None:
 
 
 def _log(path: Path) -> None:
-    from mrcert.certify_log import read_log
+    from mrcert.reporting.certify_log import read_log
 
     read_log(path)
 

@@ -32,7 +32,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert.config import plain
+from mrcert.infra.config import plain
 
 COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir")
 """Where outputs go and how runs are tracked or scheduled: never part of a result."""
@@ -171,7 +171,7 @@ def digest(values: Mapping[str, Any]) -> str:
 
 def identify(cfg: DictConfig | Mapping[str, Any], identity: Identity, train_run: str | None = None) -> RunIdentity:
     """The run and cell keys of ``cfg`` (its ``model.checkpoint`` already bound when the task
-    needs a model: see :func:`mrcert.checkpoints.bind_checkpoint`)."""
+    needs a model: see :func:`mrcert.infra.checkpoints.bind_checkpoint`)."""
     values = defining_values(cfg, identity)
     checkpoint = None
     if identity.needs_model:

@@ -27,7 +27,7 @@ import numba
 import numpy as np
 import torch
 
-from mrcert.geometry import rotvec_to_matrix
+from mrcert.core.geometry import rotvec_to_matrix
 
 # OpenMP first: thread-safe, and skips probing an old system TBB (which only warns).
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
@@ -96,6 +96,11 @@ def project(
     winner, depth = _zbuffer_torch(xyz, rank, R, t, intr, height, width, chunk_elements)
     images = _gather_colors(colors, winner, background, height, width)
     return images, depth.view(-1, height, width)
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    """(..., C, H, W) float in [0, 1] to (..., H, W, C) uint8; exact for values that are k/255."""
+    return (images.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).movedim(-3, -1).numpy()
 
 
 def camera_points(points: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:

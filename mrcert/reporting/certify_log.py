@@ -132,24 +132,3 @@ def metrics(df: pd.DataFrame, radius: float, step: float, max_radius: float) -> 
     if "seconds" in df.columns:
         out["seconds_per_image"] = float(df["seconds"].mean())
     return out, table
-
-
-def plot_curve(df: pd.DataFrame, path: Path, title: str, radius: float | None = None) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    radii, acc = curve(df)
-    fig, ax = plt.subplots(figsize=(5, 3.4))
-    # accuracy(r) = acc[i] for r in (radii[i-1], radii[i]], then 0 beyond the largest radius.
-    end = radii[-1] * 1.05 + 1e-12
-    ax.step(np.append(radii, end), np.append(acc, 0.0), where="pre", lw=1.8)
-    if radius is not None:
-        ax.axvline(radius, color="grey", ls="--", lw=1)
-    ax.set(xlabel="radius", ylabel="certified accuracy", ylim=(0, 1.02), title=title)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path

@@ -16,10 +16,10 @@ from typing import Any
 
 from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 
+from mrcert.core.geometry import AXES
 from mrcert.errors import ConfigError, MrcertError
-from mrcert.geometry import AXES
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 _FALLBACK_UID = secrets.token_hex(3)
 
 
@@ -33,15 +33,8 @@ def new_launch_uid() -> None:
     os.environ["MRCERT_RUN_UID"] = secrets.token_hex(3)
 
 
-def _task_help() -> str:
-    from mrcert.tasks import TASKS
-
-    return "\n".join(f"  {name:<10} {task.summary}" for name, task in TASKS.items())
-
-
 OmegaConf.register_new_resolver("mrcert_uid", run_uid, replace=True)
 OmegaConf.register_new_resolver("mrcert_abspath", lambda p: os.path.abspath(str(p)), replace=True)
-OmegaConf.register_new_resolver("mrcert_task_help", _task_help, replace=True)
 
 
 # --- validation -------------------------------------------------------------------------
@@ -146,15 +139,10 @@ def _leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
 
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded)."""
-    from mrcert.tasks import TASKS
-
     try:
         data = plain(cfg, throw_on_missing=True)
     except MissingMandatoryValue as exc:
         raise ConfigError(exc.full_key, "???", "a value must be given") from None
-    name = data.get("task", {}).get("name")
-    if name not in TASKS:
-        raise ConfigError("task.name", name, f"one of {', '.join(TASKS)}")
     for path, value in _leaves(data):
         rule = rule_for(path)
         if rule is not None and not rule[0](value):
@@ -169,7 +157,7 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")
     motion = data.get("motion", {})
     if motion.get("axes"):
-        from mrcert.smoothing import licensed
+        from mrcert.core.smoothing import licensed
 
         try:
             licensed(tuple(motion["axes"]), tuple(motion.get("sigmas") or ()))

@@ -24,12 +24,12 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from mrcert import identity
-from mrcert.config import plain
 from mrcert.errors import MrcertError
-from mrcert.identity import RunIdentity
-from mrcert.runtime import machine
-from mrcert.store import FileLock, ensure_sqlite_store, probe_server
+from mrcert.infra import identity
+from mrcert.infra.config import plain
+from mrcert.infra.identity import RunIdentity
+from mrcert.infra.runtime import machine
+from mrcert.infra.store import FileLock, ensure_sqlite_store, probe_server
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ def flatten(data: Any) -> dict[str, str]:
 
 def configure(tracking: DictConfig):
     """The mlflow module pointed at the configured store: a SQLite store is created atomically
-    and checked, a server is probed (see :mod:`mrcert.store`)."""
+    and checked, a server is probed (see :mod:`mrcert.infra.store`)."""
     import mlflow
 
     uri = str(tracking.uri)
@@ -250,7 +250,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
     process holding it) of the same run key is reopened and the task continues in that run's
     output directory.
     """
-    from mrcert.config import to_yaml
+    from mrcert.infra.config import to_yaml
 
     output_dir.mkdir(parents=True, exist_ok=True)
     resolved = output_dir / "resolved_config.yaml"

@@ -1,5 +1,5 @@
 """Table cells: each cell is a composed config, and its value comes from exactly the runs of
-that config's cell key (:mod:`mrcert.identity`), or from none.
+that config's cell key (:mod:`mrcert.infra.identity`), or from none.
 
 :class:`RunIndex` holds the FINISHED runs of the store (one MLflow query). For a composed
 config it binds the model the way a task would (the FINISHED train run of the derived train
@@ -21,12 +21,13 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
-from mrcert import certify_log
-from mrcert.checkpoints import bind_checkpoint
-from mrcert.config import CONF_DIR
 from mrcert.errors import MrcertError
-from mrcert.identity import identify
-from mrcert.tasks import TASKS
+from mrcert.infra.checkpoints import bind_checkpoint
+from mrcert.infra.config import CONF_DIR
+from mrcert.infra.identity import identify
+from mrcert.infra.tasks import TASKS
+from mrcert.reporting import certify_log
+from mrcert.reporting.metrics import SUMMARIES
 
 KEY, CELL = "tags.mrcert.key", "tags.mrcert.cell"
 
@@ -131,7 +132,7 @@ class RunIndex:
         train_run = None
         if task.identity.needs_model:
             try:
-                cfg, train_run = bind_checkpoint(cfg, self.train_run)
+                cfg, train_run = bind_checkpoint(cfg, self.train_run, TASKS["train"].identity)
             except MrcertError:
                 return Cell(cfg, note="no finished train run for its model")
         ident = identify(cfg, task.identity, train_run)
@@ -166,7 +167,7 @@ class RunIndex:
         log = self.log(cell)
         if log is None:
             return float("nan")
-        return float(TASKS[cell.cfg.task.name].summarize(log, cell.cfg).get(name, float("nan")))
+        return float(SUMMARIES[cell.cfg.task.name](log, cell.cfg).get(name, float("nan")))
 
 
 def _run_config(run: pd.Series) -> DictConfig:

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mrcert.cells import Cell
-from mrcert.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, format_cell, markdown, robust
+from mrcert.reporting.cells import Cell
+from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust
+from mrcert.reporting.writers import as_text, markdown
 
 
 @dataclass
@@ -188,7 +189,7 @@ def write_page(src: Source, experiment: str, table: pd.DataFrame, figure: Path, 
             "(MetaRoom, ResNet-18, 120 test images).",
             "",
         ]
-    lines += ["## Table 3, ours (paper)", "", markdown(table.reset_index().map(format_cell)), ""]
+    lines += ["## Table 3, ours (paper)", "", markdown(as_text(table)), ""]
     lines += ["## Certified accuracy against radius", "", f"![certified accuracy against radius]({picture.name})", ""]
     lines += ["## The paper's findings, checked", ""]
     lines += [f"{i}. {text}" for i, text in enumerate(findings(src, jobs), 1)] + [""]

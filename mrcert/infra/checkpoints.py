@@ -3,7 +3,7 @@
 ``model.checkpoint`` may be a file path or an MLflow artifact URI (``runs:/<run_id>/<path>``).
 When it is null, the train config is derived from the evaluation's own config (data, profile,
 model, seed, the recipe in ``train.*``, and the motion for an augmented model), and the
-FINISHED train run with that run key (:mod:`mrcert.identity`) is the model; when there is none,
+FINISHED train run with that run key (:mod:`mrcert.infra.identity`) is the model; when there is none,
 the error names the command that trains it. Multirun parent runs have no run key, so they
 never match.
 """
@@ -19,9 +19,9 @@ from typing import Any
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from mrcert.config import plain
 from mrcert.errors import MrcertError
-from mrcert.identity import identify
+from mrcert.infra.config import plain
+from mrcert.infra.identity import Identity, identify
 
 BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
@@ -36,11 +36,10 @@ def save(state: dict[str, Any], path: Path) -> None:
     os.replace(tmp, path)
 
 
-def train_key(cfg: DictConfig) -> str:
-    """The run key of the train run that makes the model ``cfg`` asks for (whatever its task)."""
-    from mrcert.tasks import TASKS
-
-    return identify(plain(cfg) | {"task": {"name": "train"}}, TASKS["train"].identity).key
+def train_key(cfg: DictConfig, train_identity: Identity) -> str:
+    """The run key of the train run (identity ``train_identity``, the train task's) that makes
+    the model ``cfg`` asks for, whatever ``cfg``'s own task."""
+    return identify(plain(cfg) | {"task": {"name": "train"}}, train_identity).key
 
 
 def train_command(cfg: DictConfig) -> str:
@@ -63,7 +62,9 @@ def run_of(ref: str) -> str | None:
     return ref[len("runs:/") :].split("/", 1)[0] if ref.startswith("runs:/") else None
 
 
-def bind_checkpoint(cfg: DictConfig, find_train_run: Callable[[str], str | None]) -> tuple[DictConfig, str | None]:
+def bind_checkpoint(
+    cfg: DictConfig, find_train_run: Callable[[str], str | None], train_identity: Identity
+) -> tuple[DictConfig, str | None]:
     """``cfg`` with ``model.checkpoint`` set to the one model it evaluates, and that model's
     train run id (None for a file given by path).
 
@@ -77,7 +78,7 @@ def bind_checkpoint(cfg: DictConfig, find_train_run: Callable[[str], str | None]
             run_id = run_of(ref)
             if run_id is None:
                 raise MrcertError(f"model.checkpoint={ref!r} is not allowed: a file path or runs:/<run_id>/<path>")
-            from mrcert.tracking import configure
+            from mrcert.infra.tracking import configure
 
             try:
                 configure(cfg.tracking).MlflowClient().get_run(run_id)
@@ -94,7 +95,7 @@ def bind_checkpoint(cfg: DictConfig, find_train_run: Callable[[str], str | None]
             "model.checkpoint is not set and tracking is off, so no train run can be looked up; "
             "set model.checkpoint=/path/to/best.pt"
         )
-    run_id = find_train_run(train_key(cfg))
+    run_id = find_train_run(train_key(cfg, train_identity))
     if run_id is None:
         axis = f" axis={cfg.motion.axis}" if cfg.model.variant != "vanilla" else ""
         raise MrcertError(
@@ -142,7 +143,7 @@ def read_checkpoint(path: Path | str) -> dict[str, Any]:
 
 def _differences(saved: Any, wanted: Any, prefix: str) -> list[str]:
     """``key=saved`` vs ``key=wanted`` for every leaf where two model configs differ."""
-    from mrcert.identity import flatten
+    from mrcert.infra.identity import flatten
 
     a, b = flatten(saved, prefix), flatten(wanted, prefix)
     return [f"{k}={a.get(k, '(unset)')!r} (checkpoint) vs {b.get(k, '(unset)')!r} (asked for)"
@@ -155,7 +156,7 @@ def load_classifier(cfg: DictConfig, num_classes: int, device):
     config is refused with a message naming both values."""
     from omegaconf import OmegaConf
 
-    from mrcert.models import build_model, for_inference
+    from mrcert.core.models import build_model, for_inference
 
     path = local_checkpoint(str(cfg.model.checkpoint))
     state = read_checkpoint(path)

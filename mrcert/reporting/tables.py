@@ -4,7 +4,7 @@ A table's rows come from an experiment config's sweep (``hydra.sweeper.params`` 
 ``conf/experiment/<name>.yaml``: its axes, models and variants), its columns from measures
 (task, metric and the overrides that fix the measure, e.g. ``attack.k=5``). A cell is the
 config ``experiment=<name> profile=<p> task=<task> <sweep values> <measure overrides>``; its
-value comes from the runs of that config's cell key (:mod:`mrcert.cells`) or it stays empty
+value comes from the runs of that config's cell key (:mod:`mrcert.reporting.cells`) or it stays empty
 (NaN, written as an empty string), never zero. Every table is written with the runs that
 filled each cell (``<table>_sources.csv``/``.md``: run ids and MLflow links). With
 ``show_paper`` a cell reads ``ours (paper)``.
@@ -21,8 +21,9 @@ import numpy as np
 import pandas as pd
 from hydra.core.override_parser.overrides_parser import OverridesParser
 
-from mrcert import certify_log, paper_results
-from mrcert.cells import Cell, RunIndex, compose_config
+from mrcert.reporting import certify_log, paper_results
+from mrcert.reporting.cells import Cell, RunIndex, compose_config
+from mrcert.reporting.plots import Curve, curve_panels
 
 ARCH_NAMES = {"resnet18": "ResNet-18", "resnet50": "ResNet-50", "small_cnn": "SmallCNN"}
 AXIS_NAMES = {"tz": "Tz", "tx": "Tx", "ty": "Ty", "rz": "Rz", "rx": "Rx", "ry": "Ry"}
@@ -291,6 +292,15 @@ def sweep_table(src: Source, parent: str | None = None, name: str = "sweep") -> 
     return wide
 
 
+def plot_curves(data: dict[str, dict[str, Curve]], path_stem: Path) -> list[Path]:
+    """The figure: one panel per axis (the paper's order), one curve per model; PNG and PDF."""
+    order = [a for a in AXES_ORDER if a in data] + [a for a in data if a not in AXES_ORDER]
+    panels = {AXIS_NAMES.get(a, a): data[a] for a in order} or {AXIS_NAMES[a]: {} for a in AXES_ORDER}
+    units = {AXIS_NAMES.get(a, a): "radius (m)" if a.startswith("t") else "radius (rad)" for a in [*order, *AXES_ORDER]}
+    title = "Certified accuracy against radius" + ("" if data else " (no certify runs)")
+    return curve_panels(panels, [path_stem.with_suffix(".png"), path_stem.with_suffix(".pdf")], title, units)
+
+
 def curves(src: Source) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
     """Per axis, per model: the exact step function (radii, certified accuracy) of its certify cell."""
     out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
@@ -300,93 +310,6 @@ def curves(src: Source) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
             label = model_label(str(cell.cfg.model.arch), str(cell.cfg.model.variant))
             out.setdefault(_axis(cell), {})[label] = certify_log.curve(log)
     return out
-
-
-def plot_curves(data: dict, path_stem: Path) -> list[Path]:
-    """One panel per axis, one step curve per model; PNG and PDF."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    axes = [a for a in AXES_ORDER if a in data] or list(data)
-    fig, panels = plt.subplots(2, 3, figsize=(12, 6.5), squeeze=False)
-    for i, ax_name in enumerate(AXES_ORDER):
-        panel = panels[i // 3][i % 3]
-        panel.set(
-            title=AXIS_NAMES[ax_name],
-            xlabel="radius (m)" if ax_name.startswith("t") else "radius (rad)",
-            ylabel="certified accuracy",
-            ylim=(0, 1.02),
-        )
-        panel.grid(alpha=0.3)
-        for label, (radii, acc) in data.get(ax_name, {}).items():
-            end = radii[-1] * 1.05 + 1e-12
-            panel.step(np.append(radii, end), np.append(acc, 0.0), where="pre", label=label, lw=1.6)
-        if ax_name in data:
-            panel.legend(fontsize=7)
-    fig.suptitle("Certified accuracy against radius" + ("" if axes else " (no certify runs)"))
-    fig.tight_layout()
-    paths = [path_stem.with_suffix(".png"), path_stem.with_suffix(".pdf")]
-    for p in paths:
-        fig.savefig(p, dpi=130)
-    plt.close(fig)
-    return paths
-
-
-def write(df: pd.DataFrame, stem: Path, caption: str) -> list[Path]:
-    """Markdown, LaTeX and CSV of a table; empty cells stay empty."""
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    flat = df.reset_index()
-    text = flat.map(format_cell) if hasattr(flat, "map") else flat.applymap(format_cell)
-    md = stem.with_suffix(".md")
-    md.write_text(f"**{caption}**\n\n" + markdown(text) + "\n")
-    tex = stem.with_suffix(".tex")
-    tex.write_text(_latex(text, caption))
-    csv = stem.with_suffix(".csv")
-    flat.to_csv(csv, index=False, na_rep="")
-    return [md, tex, csv]
-
-
-def format_cell(v) -> str:
-    if isinstance(v, float):
-        return "" if np.isnan(v) else f"{v:.3f}"
-    return "" if v is None else str(v)
-
-
-def markdown(text: pd.DataFrame) -> str:
-    header = "| " + " | ".join(map(str, text.columns)) + " |"
-    rule = "|" + "|".join("---" for _ in text.columns) + "|"
-    body = ["| " + " | ".join(row) + " |" for row in text.astype(str).itertuples(index=False, name=None)]
-    return "\n".join([header, rule, *body])
-
-
-def _latex_escape(s: str) -> str:
-    return (
-        s.replace("\\", r"\textbackslash{}")
-        .replace("&", r"\&")
-        .replace("%", r"\%")
-        .replace("_", r"\_")
-        .replace("#", r"\#")
-    )
-
-
-def _latex(text: pd.DataFrame, caption: str) -> str:
-    cols = "l" * len(text.columns)
-    lines = [
-        r"\begin{table}[ht]",
-        r"\centering",
-        rf"\begin{{tabular}}{{{cols}}}",
-        r"\hline",
-        " & ".join(_latex_escape(str(c)) for c in text.columns) + r" \\",
-        r"\hline",
-    ]
-    lines += [
-        " & ".join(_latex_escape(c) for c in row) + r" \\"
-        for row in text.astype(str).itertuples(index=False, name=None)
-    ]
-    lines += [r"\hline", r"\end{tabular}", rf"\caption{{{_latex_escape(caption)}}}", r"\end{table}", ""]
-    return "\n".join(lines)
 
 
 def _cell(value: float, paper: float | None, show_paper: bool):
