@@ -57,7 +57,8 @@ bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run 
 	$(PY) benchmarks/projection.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/certify.py --threads $(THREADS) --device $(DEVICE)
 
-ui: $(STAMP) ## MLflow UI on the project's store (http://127.0.0.1:5000, PORT=... to change)
+ui: $(STAMP) ## MLflow UI on the project's store, opened on the experiment's runs (PORT=... to change)
+	@$(PY) -c 'from mrcert.infra.tracking import ui_link_for; print("MLflow UI:", ui_link_for("$(abspath $(OUTPUTS))", "http://127.0.0.1:$(PORT)"))'
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow.db \
 	  --default-artifact-root $(abspath $(OUTPUTS))/mlartifacts --host 127.0.0.1 --port $(PORT)
 

@@ -197,3 +197,43 @@ def test_tables_task_writes_every_table_its_sources_and_the_figure(store):
     sources = pd.read_csv(out / "table3_certified_sources.csv", keep_default_na=False)
     filled = sources[sources.runs != ""]
     assert len(filled) == 3 and filled.links.str.match(r"http://127\.0\.0\.1:5000/#/experiments/\d+/runs/\w+").all()
+    (tables_run,) = mlflow.search_runs(
+        search_all_experiments=True, filter_string="tags.`mrcert.task` = 'tables'", output_format="list"
+    )
+    shown = {a.path for a in mlflow.MlflowClient().list_artifacts(tables_run.info.run_id, "tables")}
+    assert {"tables/table3_certified.json", "tables/certified_accuracy_vs_radius.png"} <= shown  # log_table, log_figure
+
+
+def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_expect(store):
+    from mrcert.infra.tracking import ui_link_for
+
+    client = mlflow.MlflowClient()
+    runs = {r.data.tags["mrcert.task"] + "/" + r.data.tags.get("mrcert.variant", ""): r
+            for r in mlflow.search_runs(search_all_experiments=True, output_format="list")}  # fmt: skip
+    assert runs["train/vanilla"].info.run_name == "train small_cnn vanilla"
+    assert runs["train/augmented"].info.run_name == "train tz small_cnn augmented"
+    assert runs["certify/vanilla"].info.run_name == "certify tz small_cnn vanilla"
+    assert runs["attack/vanilla"].info.run_name == "attack tz small_cnn vanilla k=5"
+    # The rendered data sets a model was trained and tested on, with their cache keys as digests.
+    inputs = {(d.dataset.name, [t.value for t in d.tags][0]): d.dataset.digest
+              for d in runs["train/vanilla"].inputs.dataset_inputs}  # fmt: skip
+    train_folder = next((store / "data").glob("metaroom_synth-train-*"))
+    assert inputs[("metaroom_synth-train", "training")] == train_folder.name.rsplit("-", 1)[1]
+    assert ("metaroom_synth-test", "test") in inputs
+    # The certified-accuracy curve is a figure of the certify run; the experiment opens on its runs.
+    certify_files = {a.path for a in client.list_artifacts(runs["certify/vanilla"].info.run_id)}
+    assert "certified_accuracy.png" in certify_files
+    experiment = client.get_experiment(runs["certify/vanilla"].info.experiment_id)
+    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
+    link = ui_link_for(str(store), "http://127.0.0.1:5000")
+    assert link == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs"
+
+
+def test_progress_is_a_log_line_every_few_seconds_when_nobody_watches(caplog):
+    from mrcert.infra.progress import progress
+
+    with caplog.at_level("INFO", logger="mrcert.progress"):
+        assert list(progress(range(5), "certify tz", interval=0.0)) == [0, 1, 2, 3, 4]
+        assert list(progress(range(5), "quiet", interval=3600.0)) == [0, 1, 2, 3, 4]
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 5 and lines[-1].startswith("certify tz: 5/5 done")  # pytest's stderr is no terminal

@@ -183,7 +183,12 @@ class PosedCloudData(DataBundle):
 
         tag = name if augment is None else f"{name}-{augment.axis}-aug"
         arrays, folder, hit = cached_arrays(Path(self.data.cache_dir), f"{self.data.name}-{tag}", spec, build)
-        self.cache_info[tag] = {"folder": str(folder), "hit": hit, "images": len(split)}
+        self.cache_info[tag] = {
+            "folder": str(folder),
+            "key": folder.name.rsplit("-", 1)[1],
+            "hit": hit,
+            "images": len(split),
+        }
         return ImageSet(arrays["images"], arrays["labels"], self.classes)
 
     def train(self, augment: Augment | None = None) -> ImageSet:

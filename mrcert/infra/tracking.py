@@ -13,6 +13,7 @@ import os
 import shutil
 import sys
 import time
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -76,6 +77,9 @@ def ensure_experiment(tracking: DictConfig) -> str:
     except Exception as exc:  # unreachable server, corrupt store
         raise MrcertError(f"cannot reach the MLflow store at {tracking.uri}: {exc}") from None
     if exp is not None:
+        if not all(exp.tags.get(k) == v for k, v in KIND.items()):
+            for k, v in KIND.items():
+                client.set_experiment_tag(exp.experiment_id, k, v)
         return exp.experiment_id
     location = tracking.artifact_location
     if location:
@@ -86,14 +90,50 @@ def ensure_experiment(tracking: DictConfig) -> str:
         db = sqlite_path(uri)
         with FileLock(db.with_name(f".{db.name}.lock")):
             exp = client.get_experiment_by_name(tracking.experiment)
-            return exp.experiment_id if exp else client.create_experiment(tracking.experiment, location)
+            return exp.experiment_id if exp else client.create_experiment(tracking.experiment, location, KIND)
     try:
-        return client.create_experiment(tracking.experiment, artifact_location=location)
+        return client.create_experiment(tracking.experiment, artifact_location=location, tags=KIND)
     except Exception:  # another job created it in between (a server serialises creations)
         exp = client.get_experiment_by_name(tracking.experiment)
         if exp is None:
             raise
         return exp.experiment_id
+
+
+KIND = {"mlflow.experimentKind": "custom_model_development"}
+"""Tells MLflow's UI that the experiment holds runs (it then opens on them, not on GenAI traces)."""
+
+
+def ui_link(tracking: DictConfig, base: str) -> str:
+    """The MLflow UI page of the experiment's runs (``base``: where the UI is served)."""
+    return f"{base.rstrip('/')}/#/experiments/{ensure_experiment(tracking)}/runs"
+
+
+def ui_link_for(outputs: str, base: str, experiment: str = "mrcert") -> str:
+    """:func:`ui_link` for the default SQLite store under ``outputs`` (what ``make ui`` serves)."""
+    uri = f"sqlite:///{Path(outputs).resolve() / 'mlflow.db'}"
+    location = str(Path(outputs).resolve() / "mlartifacts")
+    tracking = OmegaConf.create({"enabled": True, "uri": uri, "artifact_location": location, "experiment": experiment})
+    return ui_link(tracking, base)
+
+
+def run_name(cfg: DictConfig) -> str:
+    """What the run is, in words: ``certify tz resnet18 augmented``, ``render testscene``..."""
+    task = str(cfg.task.name)
+    if task in ("train", "certify", "smooth", "attack"):
+        words = [task, str(cfg.motion.axis), str(cfg.model.arch), str(cfg.model.variant)]
+        if task == "train" and cfg.model.variant == "vanilla":
+            words.remove(str(cfg.motion.axis))  # a vanilla model has no axis
+        if task == "attack":
+            words.append(f"k={cfg.attack.k}")
+        if int(OmegaConf.select(cfg, "task.num_shards", default=1) or 1) > 1:
+            words.append(f"shard {cfg.task.shard}/{cfg.task.num_shards}")
+        return " ".join(words)
+    if task == "import":
+        return f"import {cfg.task.axis} {cfg.task.arch} {cfg.task.variant}"
+    if task == "tables":
+        return f"tables {cfg.task.experiment or 'paper'}"
+    return f"{task} {cfg.data.name}"
 
 
 def run_tags(cfg: DictConfig) -> dict[str, str]:
@@ -130,6 +170,32 @@ class Tracker:
             import mlflow
 
             mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
+
+    def log_figure(self, figure, artifact_file: str) -> None:
+        """A matplotlib figure, shown by MLflow's UI with the run."""
+        if self.enabled:
+            import mlflow
+
+            mlflow.log_figure(figure, artifact_file)
+
+    def log_table(self, table, artifact_file: str) -> None:
+        """A pandas table (``.json``), shown by MLflow's UI with the run."""
+        if self.enabled:
+            import mlflow
+
+            mlflow.log_table(table.reset_index() if table.index.names != [None] else table, artifact_file)
+
+    def log_input(self, folder: Path | str, name: str, digest: str, context: str) -> None:
+        """The rendered data set a run read (a cache entry: its key is the digest)."""
+        if self.enabled:
+            import mlflow
+            from mlflow.data.dataset_source_registry import resolve_dataset_source
+            from mlflow.data.meta_dataset import MetaDataset
+
+            with warnings.catch_warnings():  # a local folder matches two equivalent source kinds
+                warnings.simplefilter("ignore", UserWarning)
+                source = resolve_dataset_source(Path(folder).resolve().as_uri())
+            mlflow.log_input(MetaDataset(source, name=name, digest=digest), context=context)
 
     def log_artifact(self, path: Path | str, artifact_path: str | None = None) -> None:
         if self.enabled:
@@ -277,7 +343,9 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
         tags = (
             run_tags(cfg) | ident.tags() | {"mrcert.output_dir": str(output_dir.resolve()), "mrcert.machine": machine()}
         )
-        run_ctx = mlflow.start_run(experiment_id=experiment_id, parent_run_id=parent_id, tags=tags)
+        run_ctx = mlflow.start_run(
+            experiment_id=experiment_id, parent_run_id=parent_id, tags=tags, run_name=run_name(cfg)
+        )
     try:
         with run_ctx as run:
             if previous is None:

@@ -10,16 +10,15 @@ import numpy as np
 Curve = tuple[np.ndarray, np.ndarray]
 
 
-def curve_panels(
+def curve_figure(
     panels: dict[str, dict[str, Curve]],
-    paths: list[Path],
     title: str,
     xlabels: dict[str, str] | None = None,
     marks: dict[str, float] | None = None,
     columns: int = 3,
-) -> list[Path]:
-    """One panel per key of ``panels`` (its title), one step curve per label; a dashed line at
-    ``marks[panel]`` (e.g. the certified radius). Saved to every path (PNG, PDF)."""
+):
+    """A matplotlib figure: one panel per key of ``panels`` (its title), one step curve per
+    label, a dashed line at ``marks[panel]`` (e.g. the certified radius)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -42,6 +41,13 @@ def curve_panels(
             ax.legend(fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
+    return fig
+
+
+def save(fig, paths: list[Path]) -> list[Path]:
+    """Write ``fig`` to every path (PNG, PDF) and free it."""
+    import matplotlib.pyplot as plt
+
     for path in paths:
         fig.savefig(path, dpi=130)
     plt.close(fig)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import functools
 import itertools
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -23,7 +22,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 
 from mrcert.reporting import certify_log, paper_results
 from mrcert.reporting.cells import Cell, RunIndex, compose_config
-from mrcert.reporting.plots import Curve, curve_panels
+from mrcert.reporting.plots import Curve, curve_figure
 
 ARCH_NAMES = {"resnet18": "ResNet-18", "resnet50": "ResNet-50", "small_cnn": "SmallCNN"}
 AXIS_NAMES = {"tz": "Tz", "tx": "Tx", "ty": "Ty", "rz": "Rz", "rx": "Rx", "ry": "Ry"}
@@ -292,13 +291,13 @@ def sweep_table(src: Source, parent: str | None = None, name: str = "sweep") -> 
     return wide
 
 
-def plot_curves(data: dict[str, dict[str, Curve]], path_stem: Path) -> list[Path]:
-    """The figure: one panel per axis (the paper's order), one curve per model; PNG and PDF."""
+def curves_figure(data: dict[str, dict[str, Curve]]):
+    """The figure: one panel per axis (the paper's order), one curve per model."""
     order = [a for a in AXES_ORDER if a in data] + [a for a in data if a not in AXES_ORDER]
     panels = {AXIS_NAMES.get(a, a): data[a] for a in order} or {AXIS_NAMES[a]: {} for a in AXES_ORDER}
     units = {AXIS_NAMES.get(a, a): "radius (m)" if a.startswith("t") else "radius (rad)" for a in [*order, *AXES_ORDER]}
     title = "Certified accuracy against radius" + ("" if data else " (no certify runs)")
-    return curve_panels(panels, [path_stem.with_suffix(".png"), path_stem.with_suffix(".pdf")], title, units)
+    return curve_figure(panels, title, units)
 
 
 def curves(src: Source) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:

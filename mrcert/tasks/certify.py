@@ -14,7 +14,7 @@ from omegaconf import DictConfig
 from mrcert.core.smoothing import image_generator
 from mrcert.infra.tasks import RunContext
 from mrcert.reporting import certify_log
-from mrcert.reporting.plots import curve_panels
+from mrcert.reporting.plots import curve_figure, save
 from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
 
 
@@ -26,11 +26,11 @@ def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, regi
     grid.to_csv(grid_path, index=False)
     for k, acc in enumerate(grid["certified_accuracy"]):
         ctx.tracker.log_metrics({"certified_accuracy_at_step": acc}, step=k)
-    curve = ctx.output_dir / "certified_accuracy.png"
-    suptitle = textwrap.fill(region, 70)
-    curve_panels({title: {"": certify_log.curve(df)}}, [curve], suptitle, marks={title: cfg_radius}, columns=1)
+    fig = curve_figure({title: {"": certify_log.curve(df)}}, textwrap.fill(region, 70), marks={title: cfg_radius})
+    ctx.tracker.log_figure(fig, "certified_accuracy.png")
+    save(fig, [ctx.output_dir / "certified_accuracy.png"])
     (ctx.output_dir / "region.txt").write_text(region + "\n")
-    log_outputs(ctx, metrics, grid_path, curve, ctx.output_dir / "region.txt")
+    log_outputs(ctx, metrics, grid_path, ctx.output_dir / "region.txt")
     return metrics
 
 

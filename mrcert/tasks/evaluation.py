@@ -17,6 +17,7 @@ from mrcert.data.samples import TestSample
 from mrcert.data.sources import load
 from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier
+from mrcert.infra.progress import progress
 from mrcert.infra.runtime import resolve_device
 from mrcert.infra.tasks import RunContext
 from mrcert.reporting.certify_log import ResultLog
@@ -68,11 +69,9 @@ def prepare(cfg: DictConfig) -> Evaluation:
 
 def run_per_image(log: ResultLog, indices: list[int], work: Callable[[int], dict[str, Any]], desc: str) -> int:
     """Run ``work(i)`` for every index not yet in ``log``, appending each row as it is done."""
-    from tqdm import tqdm
-
     done = log.done()
     todo = [i for i in indices if i not in done]
-    for i in tqdm(todo, desc=desc):
+    for i in progress(todo, desc):
         start = time.perf_counter()
         row = work(i)
         row["seconds"] = time.perf_counter() - start

@@ -15,6 +15,7 @@ from mrcert.infra.tasks import RunContext
 from mrcert.infra.tracking import configure, ensure_experiment
 from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
+from mrcert.reporting.plots import save
 from mrcert.reporting.writers import as_text, markdown, write
 
 SOURCES = {"runs": "certify", "import": "import"}
@@ -72,13 +73,16 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         paths += write(src.sources(name), out / f"{name}_sources", f"{caption}: the runs behind each cell")
         for path in paths:
             ctx.tracker.log_artifact(path, "tables")
+        if len(df):
+            ctx.tracker.log_table(as_text(df), f"tables/{name}.json")
         values = df.to_numpy().ravel() if len(df) else np.array([])
         metrics[f"{name}_filled_cells"] = float(
             sum(1 for v in values if isinstance(v, str) and v.strip() or isinstance(v, float) and not np.isnan(v))
         )
-    figure, pdf = tables.plot_curves(tables.curves(src), out / "certified_accuracy_vs_radius")
-    for path in (figure, pdf):
-        ctx.tracker.log_artifact(path, "tables")
+    fig = tables.curves_figure(tables.curves(src))
+    ctx.tracker.log_figure(fig, "tables/certified_accuracy_vs_radius.png")
+    stem = out / "certified_accuracy_vs_radius"
+    figure, _ = save(fig, [stem.with_suffix(".png"), stem.with_suffix(".pdf")])
     if t.page:
         from mrcert.reporting.results_page import write_page
 

@@ -12,6 +12,7 @@ uninterrupted one. ``best.pt`` and ``last.pt`` are logged as artifacts under ``c
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
@@ -19,7 +20,6 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
-from tqdm import tqdm
 
 from mrcert.core.models import build_model
 from mrcert.data.datasets import Augment, ImageSet
@@ -27,13 +27,24 @@ from mrcert.data.holdout import validation_split
 from mrcert.data.sources import load
 from mrcert.errors import MrcertError
 from mrcert.infra import checkpoints
+from mrcert.infra.progress import progress
 from mrcert.infra.runtime import resolve_device
 from mrcert.infra.tasks import RunContext
+
+log = logging.getLogger(__name__)
 
 
 def as_tensors(images: ImageSet) -> tuple[torch.Tensor, torch.Tensor]:
     """All images as one uint8 tensor (N, C, H, W) and the labels."""
     return torch.from_numpy(np.array(images.images)).permute(0, 3, 1, 2).contiguous(), torch.from_numpy(images.labels)
+
+
+def log_inputs(ctx: RunContext, bundle, context: str, logged: set[str]) -> None:
+    """The rendered image sets read since ``logged``, as MLflow inputs (their cache key is the digest)."""
+    for tag, info in bundle.cache_info.items():
+        if tag not in logged:
+            logged.add(tag)
+            ctx.tracker.log_input(info["folder"], f"{bundle.data.name}-{tag}", info["key"], context)
 
 
 def to_device(images: torch.Tensor, device: torch.device) -> torch.Tensor:
@@ -65,6 +76,8 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     elif cfg.model.variant != "vanilla":
         raise MrcertError(f"model.variant={cfg.model.variant!r} is not allowed: vanilla or augmented")
     all_x, all_y = as_tensors(bundle.train(augment))
+    inputs: set[str] = set()
+    log_inputs(ctx, bundle, "training", inputs)
     keep, held = validation_split(all_y.numpy(), float(r.val_fraction), int(cfg.seed))
     train_x, train_y = all_x[keep], all_y[keep]
     val_x, val_y = all_x[held], all_y[held]
@@ -106,8 +119,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         model.train()
         order = torch.randperm(len(train_y), generator=torch.Generator().manual_seed(int(cfg.seed) * 100_003 + epoch))
         total_loss, correct = 0.0, 0
-        bar = tqdm(range(0, len(order), r.batch_size), desc=f"epoch {epoch + 1}/{r.epochs}", leave=False)
-        for s in bar:
+        for s in progress(range(0, len(order), r.batch_size), f"epoch {epoch + 1}/{r.epochs}"):
             idx = order[s : s + r.batch_size]
             x = to_device(train_x[idx], device)
             y = train_y[idx].to(device, non_blocking=True)
@@ -120,7 +132,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             scaler.update()
             total_loss += loss.item() * len(idx)
             correct += int((logits.argmax(1) == y).sum())
-            bar.set_postfix(loss=f"{loss.item():.3f}", acc=f"{correct / (s + len(idx)):.3f}")
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
         history = {
@@ -150,7 +161,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             },
             last_path,
         )
-        tqdm.write(
+        log.info(
             f"epoch {epoch + 1}/{r.epochs}: loss {history['train_loss']:.4f} "
             f"train acc {history['train_acc']:.3f} val acc {val_acc:.3f} ({len(held)} held-out training images)"
         )
@@ -159,6 +170,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     # The test images, once, for the record: the selected model's accuracy on them.
     model.load_state_dict(torch.load(best_path, map_location="cpu", weights_only=True)["model"])
     test_x, test_y = as_tensors(bundle.test())
+    log_inputs(ctx, bundle, "test", inputs)
     test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size)
     summary = {"test_acc": test_acc} | ({"best_val_acc": best_acc} if len(held) else {})
     ctx.tracker.log_metrics(summary)
