@@ -173,3 +173,29 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
                     f"experiment={experiment} task={task} {' '.join(combo)}"
                 )
     assert {k: v for k, v in evaluated.items() if k not in trained} == {}
+
+
+@pytest.mark.parametrize(
+    "override,key",
+    [
+        ("task.n=abc", "task.n"),
+        ("motion.sigma=fast", "motion.sigma"),
+        ("data.image.height=tall", "data.image.height"),
+        ("train.amp=maybe", "train.amp"),
+        ("task.n_samples=5", "task.n_samples"),
+    ],
+)
+def test_a_bad_type_or_an_unknown_key_fails_at_composition(override, key):
+    """The structured-config schemas (mrcert/infra/schema.py) reject these before any code runs."""
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_cfg(["task=certify", override])
+    assert key in str(info.value) + str(info.value.__cause__)
+
+
+@pytest.mark.parametrize("override", ["+task.n_samples=5", "+model.weights=imagenet", "+data.image.gamma=2"])
+def test_a_key_added_with_plus_that_no_schema_has_is_named(override):
+    key = override[1:].split("=")[0]
+    with pytest.raises(ConfigError, match=rf"config value {key}=.* not a key of this"):
+        validate(compose_cfg(["task=certify", override]))

@@ -7,6 +7,7 @@ Importing this module registers the OmegaConf resolvers the configs in ``conf/``
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import secrets
@@ -18,6 +19,7 @@ from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 
 from mrcert.core.geometry import AXES
 from mrcert.errors import ConfigError, MrcertError
+from mrcert.infra.schema import register
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 _FALLBACK_UID = secrets.token_hex(3)
@@ -33,6 +35,7 @@ def new_launch_uid() -> None:
     os.environ["MRCERT_RUN_UID"] = secrets.token_hex(3)
 
 
+register()  # the structured-config schemas the option files name
 OmegaConf.register_new_resolver("mrcert_uid", run_uid, replace=True)
 OmegaConf.register_new_resolver("mrcert_abspath", lambda p: os.path.abspath(str(p)), replace=True)
 
@@ -137,12 +140,34 @@ def _leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
             yield path, value
 
 
+def _unknown_keys(node: Any, prefix: str) -> Iterator[tuple[str, list[str]]]:
+    """Keys of a structured node (and its structured children) that its schema does not have,
+    e.g. added with ``+task.x=1``: (dotted key, the schema's keys)."""
+    if not isinstance(node, DictConfig):
+        return
+    schema = OmegaConf.get_type(node)
+    if dataclasses.is_dataclass(schema):
+        known = [f.name for f in dataclasses.fields(schema)]
+        for key in node:
+            if key not in known:
+                yield f"{prefix}.{key}", known
+    for key in node:
+        child = node._get_node(key)
+        if isinstance(child, DictConfig):
+            yield from _unknown_keys(child, f"{prefix}.{key}")
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded)."""
     try:
         data = plain(cfg, throw_on_missing=True)
     except MissingMandatoryValue as exc:
         raise ConfigError(exc.full_key, "???", "a value must be given") from None
+    for group in (k for k in cfg if k != "hydra"):
+        for key, known in _unknown_keys(cfg._get_node(group), str(group)):
+            raise ConfigError(
+                key, OmegaConf.select(cfg, key), f"not a key of this {group}; its keys: {', '.join(known)}"
+            )
     for path, value in _leaves(data):
         rule = rule_for(path)
         if rule is not None and not rule[0](value):

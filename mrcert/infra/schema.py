@@ -1,0 +1,262 @@
+"""Structured configs: one dataclass schema per config group option, registered in Hydra's
+ConfigStore under ``schema/<group>`` and named first in each option's defaults list
+(``- /schema/task@_here_: certify``). A key the schema does not have, or a value of the wrong
+type, then fails at composition, with Hydra's message naming the key. What a type cannot say
+-- ranges, axis names, licensed combinations -- :func:`mrcert.infra.config.validate` checks.
+
+The schemas mirror the YAML files key for key: a field with a default that a file does not set
+would add a key to every run's config, and so change its run key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
+
+
+# --- task --------------------------------------------------------------------------------
+@dataclass
+class Evaluation:
+    name: str = MISSING
+    n: int = MISSING
+    alpha: float = MISSING
+    batch_size: int = MISSING
+    skip: int = MISSING
+    max: int | None = None
+    shard: int = MISSING
+    num_shards: int = MISSING
+    crop_sigmas: float = MISSING
+    resume: bool = MISSING
+    backend: str = MISSING
+
+
+@dataclass
+class Certify(Evaluation):
+    n0: int = MISSING
+    sequential: bool = MISSING
+    look: int = MISSING
+
+
+@dataclass
+class Smooth(Evaluation):
+    pass
+
+
+@dataclass
+class Attack(Evaluation):
+    smoothed: bool = MISSING
+
+
+@dataclass
+class Train:
+    name: str = MISSING
+    eval_batch_size: int = MISSING
+    resume: bool = MISSING
+
+
+@dataclass
+class Render:
+    name: str = MISSING
+    axes: list[str] | None = None
+    num: int = MISSING
+    extent: dict[str, float] = field(default_factory=dict)
+    motions: Any = None
+    backend: str = MISSING
+    variants: list[str] = field(default_factory=list)
+    showcase: str = MISSING
+
+
+@dataclass
+class Tables:
+    name: str = MISSING
+    profile: str = MISSING
+    experiment: str | None = None
+    overrides: list[str] = field(default_factory=list)
+    archs: list[str] | None = None
+    axes: list[str] | None = None
+    source: str = MISSING
+    show_paper: bool = MISSING
+    parent: str | None = None
+    output_dir: str = MISSING
+    print: str = MISSING
+    ui_url: str = MISSING
+    page: str | None = None
+
+
+@dataclass
+class Import:
+    name: str = MISSING
+    path: str = MISSING
+    dataset: str = MISSING
+    arch: str = MISSING
+    axis: str = MISSING
+    variant: str = MISSING
+    profile: str = MISSING
+    sigma: float = MISSING
+    radius: float = MISSING
+    radius_step: float = MISSING
+    tags: dict[str, str] = field(default_factory=dict)
+
+
+# --- data --------------------------------------------------------------------------------
+@dataclass
+class Camera:
+    height: int = MISSING
+    width: int = MISSING
+    fx: float = MISSING
+    fy: float = MISSING
+    cx: float = MISSING
+    cy: float = MISSING
+    background: float = MISSING
+
+
+@dataclass
+class Crop:
+    max_translation: float = MISSING
+    max_rotation: float = MISSING
+
+
+@dataclass
+class Scene:
+    name: str = MISSING
+    source: str = MISSING
+    path: str | None = None
+    num_classes: int = MISSING
+    density: float = MISSING
+    image: Camera = field(default_factory=Camera)
+
+
+@dataclass
+class Synthetic:
+    name: str = MISSING
+    source: str = MISSING
+    num_classes: int = MISSING
+    classes: list[str] | None = None
+    seed: int = MISSING
+    density: float = MISSING
+    room_density: float = MISSING
+    image: Camera = field(default_factory=Camera)
+    protocol: Any = MISSING  # pose protocol: checked by validate (ranges, counts, gaps)
+    crop: Crop = field(default_factory=Crop)
+    downsample: bool = MISSING
+    cache_dir: str = MISSING
+
+
+@dataclass
+class Released:
+    name: str = MISSING
+    source: str = MISSING
+    path: str | None = None
+    axis: str = MISSING
+    variant: str = MISSING
+    num_classes: int = MISSING
+    image: Camera = field(default_factory=Camera)
+    crop: Crop = field(default_factory=Crop)
+    downsample: bool = MISSING
+
+
+@dataclass
+class Custom:
+    name: str = MISSING
+    source: str = MISSING
+    path: str = MISSING
+    poses: str = MISSING
+    num_classes: int | None = None
+    image: Camera = field(default_factory=Camera)
+    crop: Crop = field(default_factory=Crop)
+    downsample: bool = MISSING
+    cache_dir: str = MISSING
+
+
+# --- the other groups ----------------------------------------------------------------------
+@dataclass
+class Downsample:
+    every_k: int = MISSING
+    voxel: float = MISSING
+
+
+@dataclass
+class Motion:
+    axis: str = MISSING
+    sigma: float = MISSING
+    radius: float = MISSING
+    radius_step: float = MISSING
+    downsample: Downsample = field(default_factory=Downsample)
+
+
+@dataclass
+class MultiAxisMotion(Motion):
+    axes: list[str] = MISSING
+    sigmas: list[float] = MISSING
+
+
+@dataclass
+class Model:
+    arch: str = MISSING
+    net: Any = MISSING  # instantiated from its _target_ (any nn.Module taking num_classes)
+    variant: str = MISSING
+    checkpoint: str | None = None
+
+
+@dataclass
+class AttackGroup:
+    name: str = MISSING
+    k: int = MISSING
+    radius: float = MISSING
+
+
+@dataclass
+class Tracking:
+    enabled: bool = MISSING
+    uri: str | None = None
+    artifact_location: str | None = None
+    experiment: str = MISSING
+
+
+@dataclass
+class Recipe:
+    epochs: int = MISSING
+    batch_size: int = MISSING
+    lr: float = MISSING
+    momentum: float = MISSING
+    weight_decay: float = MISSING
+    step_size: int = MISSING
+    gamma: float = MISSING
+    val_fraction: float = MISSING
+    amp: bool = MISSING
+
+
+@dataclass
+class Profile:
+    name: str = MISSING
+
+
+SCHEMAS: dict[str, dict[str, type]] = {
+    "task": {
+        "certify": Certify,
+        "smooth": Smooth,
+        "attack": Attack,
+        "train": Train,
+        "render": Render,
+        "tables": Tables,
+        "import": Import,
+    },
+    "data": {"scene": Scene, "synthetic": Synthetic, "released": Released, "custom": Custom, "camera": Camera},
+    "motion": {"single": Motion, "multi": MultiAxisMotion},
+    "model": {"model": Model},
+    "attack": {"attack": AttackGroup},
+    "tracking": {"tracking": Tracking},
+    "train": {"recipe": Recipe},
+    "profile": {"profile": Profile},
+}
+
+
+def register() -> None:
+    """Store every schema as ``schema/<group>/<name>`` (idempotent)."""
+    store = ConfigStore.instance()
+    for group, schemas in SCHEMAS.items():
+        for name, node in schemas.items():
+            store.store(group=f"schema/{group}", name=name, node=node)
