@@ -14,8 +14,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mrcert.infra.identity import identify
+from mrcert.infra.tasks import TASKS
 from mrcert.reporting.cells import Cell
-from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust
+from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust, sweep_combos
 from mrcert.reporting.writers import as_text, markdown
 
 
@@ -119,6 +121,47 @@ def findings(src: Source, jobs: list[Job]) -> list[str]:
     return out
 
 
+def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
+    """Each evaluated model's training record: accuracy on its held-out training poses (what
+    selected ``best.pt``) and on the test images (measured once, after training)."""
+    df = src.index.df.set_index("run_id")
+    rows = {}
+    for j in jobs:
+        run = str(j.certify.runs[0]["tags.mrcert.train_run"]) if j.certify.filled else None
+        if run is None or run not in df.index or j.variant + (j.axis if j.variant == "augmented" else "") in rows:
+            continue
+        label = "vanilla (every axis)" if j.variant == "vanilla" else f"augmented on {j.axis}"
+        rows[j.variant + (j.axis if j.variant == "augmented" else "")] = {
+            "model": f"{j.arch} {label}",
+            "validation accuracy": df.loc[run].get("metrics.best_val_acc", np.nan),
+            "test accuracy": df.loc[run].get("metrics.test_acc", np.nan),
+        }
+    return pd.DataFrame(list(rows.values()))
+
+
+def generalization(src: Source, experiment: str = "generalization") -> pd.DataFrame:
+    """The ``generalization`` experiment's train runs: test accuracy by separation rule and
+    training poses per class (empty when it has not run)."""
+    rows = []
+    for combo in sweep_combos(experiment):
+        cfg = src.index.cell((f"experiment={experiment}", f"profile={src.profile}", "task=train", *combo)).cfg
+        key = identify(cfg, TASKS["train"].identity).key
+        hits = src.index.df[src.index.df["tags.mrcert.key"] == key]
+        if hits.empty:
+            continue
+        run = hits.iloc[0]
+        rows.append(
+            {
+                "separation rule": cfg.data.protocol.separation_rule,
+                "training poses per class": cfg.data.protocol.train.per_class,
+                "model": cfg.model.arch,
+                "validation accuracy": run.get("metrics.best_val_acc", np.nan),
+                "test accuracy": run.get("metrics.test_acc", np.nan),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
 def _share(skip: int) -> str:
     return "every test image" if skip == 1 else f"one test image in {skip}"
 
@@ -193,6 +236,32 @@ def write_page(src: Source, experiment: str, table: pd.DataFrame, figure: Path, 
     lines += ["## Certified accuracy against radius", "", f"![certified accuracy against radius]({picture.name})", ""]
     lines += ["## The paper's findings, checked", ""]
     lines += [f"{i}. {text}" for i, text in enumerate(findings(src, jobs), 1)] + [""]
+    models = base_models(src, jobs)
+    if len(models):
+        lines += [
+            "## The base models",
+            "",
+            "Certified accuracy can be no higher than what the base model gets right under the smoothing noise, "
+            "and the base models' own test accuracy bounds that: each model's accuracy on its held-out *training* "
+            "poses (which selected `best.pt`) and on the test images.",
+            "",
+            markdown(as_text(models)),
+            "",
+        ]
+    general = generalization(src)
+    if len(general):
+        lines += [
+            "## Why: generalisation from the training poses to the test poses",
+            "",
+            "`mrcert -m experiment=generalization task=train`: a small vanilla CNN trained with each pose-separation "
+            "rule and number of training poses per class, everything else as above. `every` keeps each angle of a "
+            "training pose at least 15 degrees from that angle of every test pose (the paper's reading: no training "
+            "pose has a roll within 15 degrees of the test poses' 0, a pitch within 15 of their 10, or a yaw within 15 "
+            "of theirs); `any` only keeps training poses out of the box around each test pose.",
+            "",
+            markdown(as_text(general)),
+            "",
+        ]
     lines += ["## Time per stage", "", markdown(times.astype(str)), ""]
     lines += [f"Machine: {'; '.join(machines) or 'unknown'}.", ""]
     lines += [
