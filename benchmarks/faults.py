@@ -26,15 +26,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-TINY = [
-    "data=metaroom_synth",
-    "model=small_cnn",
-    "model.net.width=8",
-    "data.classes=[can,mug,apple]",
-    "data.room_density=0.03",
-    "data.density=0.01",
-    "data.protocol.train.per_class=16",
-]
+sys.path.insert(0, str(ROOT))
+from tests.conftest import TINY  # noqa: E402 - the tests' tiny data and model, shared
+
 TRAIN = [*TINY, "task=train", "train.epochs=6", "train.batch_size=8", "task.resume=true", "skip_finished=true"]
 
 

@@ -141,6 +141,7 @@ def best(outputs: Path) -> Path:
     return path
 
 
+@pytest.mark.slow  # the fast suite kills certifications in tests/test_faults.py
 def test_certify_killed_and_restarted_resumes_to_the_identical_tsv(trained, tmp_path):
     args = [*TINY, *FAST_CERTIFY, "task.max=8", f"model.checkpoint={best(trained)}"]
     full = tmp_path / "full"
