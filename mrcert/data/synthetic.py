@@ -11,6 +11,8 @@ never changes the others.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
@@ -23,6 +25,30 @@ from mrcert.errors import MrcertError
 from mrcert.scenes import metaroom, tabletop
 
 
+@dataclass(frozen=True)
+class Family:
+    """A synthetic scene family: its classes, the scene around the object, the object, and how
+    high a camera may go (None: no ceiling)."""
+
+    classes: tuple[str, ...]
+    background: Callable[[DictConfig], list[tuple[np.ndarray, np.ndarray]]]
+    object: Callable[[str, float], tuple[np.ndarray, np.ndarray]]
+    max_camera_z: float | None
+
+
+FAMILIES = {
+    "metaroom_synth": Family(
+        tuple(metaroom.CLASSES),
+        lambda d: [metaroom.room(d.room_density, d.seed), metaroom.table(d.density)],
+        metaroom.object_cloud,
+        metaroom.CEILING_Z - 0.05,  # cameras stay 5 cm below the ceiling
+    ),
+    "tabletop_synth": Family(
+        tuple(tabletop.CLASSES), lambda d: [tabletop.table(d.room_density)], tabletop.shape_cloud, None
+    ),
+}
+
+
 def _ranges(train: DictConfig) -> dict[str, tuple[float, float]]:
     return {q: tuple(train[f"{q}_range"]) for q in ("yaw", "pitch", "roll", "radius")}
 
@@ -32,7 +58,8 @@ class SyntheticSource:
 
     def __init__(self, data: DictConfig):
         self.data = data
-        known = metaroom.CLASSES if data.source == "metaroom_synth" else tabletop.CLASSES
+        self.family = FAMILIES[data.source]
+        known = self.family.classes
         chosen = list(data.classes) if data.get("classes") else list(known)
         unknown = [c for c in chosen if c not in known]
         if unknown:
@@ -44,18 +71,11 @@ class SyntheticSource:
     @cached_property
     def background(self) -> tuple[np.ndarray, np.ndarray]:
         """Everything but the object: (points, colours) in the world frame."""
-        d = self.data
-        if d.source == "metaroom_synth":
-            parts = [metaroom.room(d.room_density, d.seed), metaroom.table(d.density)]
-        else:
-            parts = [tabletop.table(d.room_density)]
+        parts = self.family.background(self.data)
         return np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
 
     def object(self, label: int) -> tuple[np.ndarray, np.ndarray]:
-        name = self.classes[label]
-        if self.data.source == "metaroom_synth":
-            return metaroom.object_cloud(name, self.data.density)
-        return tabletop.shape_cloud(name, self.data.density)
+        return self.family.object(self.classes[label], self.data.density)
 
     def cloud(self, label: int) -> tuple[np.ndarray, np.ndarray]:
         """The scene of class ``label``: background + object, world frame (the last one is kept)."""
@@ -79,7 +99,6 @@ class SyntheticSource:
     def _train_set(self, label: int) -> PoseSet:
         p = self.data.protocol
         rng = np.random.default_rng([self.data.seed, label, 1])
-        max_z = metaroom.CEILING_Z - 0.05 if self.data.source == "metaroom_synth" else None
         gaps = OmegaConf.to_container(p.separation)
         return sample_poses(
             p.train.per_class,
@@ -88,7 +107,7 @@ class SyntheticSource:
             tests=self._test_set(label).params,
             gaps=gaps,
             rule=str(p.separation_rule),
-            max_camera_z=max_z,
+            max_camera_z=self.family.max_camera_z,
             target=self._target(),
         )
 
