@@ -110,3 +110,32 @@ def test_a_refused_motion_config_stops_before_any_work():
     cfg = compose_cfg(["motion=txyz_rz", "motion.sigmas=[0.05,0.06,0.1,0.122173]"])
     with pytest.raises(ConfigError, match=r"motion.axes=.*sigma_x=0.05, sigma_y=0.06.*equal sigma, or neither"):
         validate(cfg)
+
+
+def test_a_smoothed_prediction_at_a_moved_camera_draws_the_composition_not_the_sum():
+    """PREDICT at a camera moved by ``alpha`` renders ``alpha o eps`` (Lemma 1): on the one smoothed
+    axis that is ``alpha + eps`` bit for bit; with a rotation it is the composition, never the sum."""
+    from mrcert.core.smoothing import SmoothedClassifier, image_generator
+
+    seen = []
+
+    def render(motions):  # records what the classifier asks to see
+        seen.append(motions.clone())
+        return torch.zeros(len(motions), 3, 2, 2)
+
+    class Zero(torch.nn.Module):
+        def forward(self, x):
+            return torch.zeros(len(x), 2)
+
+    for axes, sigmas, alpha in [
+        (("tx", "ty", "tz", "rz"), (0.05, 0.05, 0.1, 0.122173), motion(tx=0.03, rz=0.2)),
+        (("rz",), (0.122173,), motion(rz=0.2)),
+    ]:
+        dist = SmoothingDistribution(axes, sigmas)
+        seen.clear()
+        SmoothedClassifier(Zero(), dist, 2, batch_size=1000).sample_counts(render, 500, image_generator(0, 1), alpha)
+        eps = dist.sample(500, image_generator(0, 1))
+        expected = alpha + eps if len(axes) == 1 else compose(alpha.expand(500, 6), eps)
+        assert torch.equal(seen[0], expected)
+        if len(axes) > 1:
+            assert not torch.allclose(seen[0], alpha + eps)  # the sum would be another distribution
