@@ -42,6 +42,7 @@ reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished
 results: $(STAMP) ## the evidence page docs/results.md: ResNet-18, six axes, all 120 test images (hours on 2 CPU cores)
 	$(MRCERT) -m experiment=results task=train
 	$(MRCERT) -m experiment=results task=certify,smooth,attack
+	$(MRCERT) -m experiment=generalization task=train
 	$(MRCERT) task=tables task.experiment=results task.page=docs/results.md
 
 test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)

@@ -84,6 +84,20 @@ def test_sequential_certificates_follow_their_sequence_and_save_samples():
     assert other.certify_sequential(render, 100, 1000, 0.01, 0.1, 100, image_generator(0, 0)) == cert
 
 
+def test_sequential_keeps_sampling_until_a_clear_margin_is_certified():
+    """Streams whose true p is clearly above what the radius needs (0.90 vs 0.84) are certified
+    at that radius: it stops on the lower confidence bound, never on the point estimate (which
+    clears the need at the first look while the bound does not yet)."""
+    alpha, radius, look, n_max = 0.05, 1.0, 50, 3000
+    certs = [
+        Simulated(0.9, seed).certify_sequential(None, 100, n_max, alpha, radius, look, image_generator(0, seed))
+        for seed in range(200)
+    ]
+    certified = [c.prediction == 1 and c.radius >= radius for c in certs]
+    assert np.mean(certified) >= 0.95
+    assert np.mean([c.n for c in certs]) < n_max / 2  # and still stops early
+
+
 class Noisy(torch.nn.Module):
     """Votes class 1 with probability 0.6 whatever the image (its own seeded generator)."""
 

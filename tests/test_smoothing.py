@@ -223,6 +223,7 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
     # Each row is PREDICT at that test pose, recomputed here through the classifier directly.
     from mrcert.data.sources import load
     from mrcert.infra.checkpoints import load_classifier
+    from mrcert.tasks.attack import attack_motions
 
     bundle = load(cfg.data)
     samples = bundle.samples(crop=SmoothingDistribution(("tz",), (0.1,)).crop_bound(6.0))
@@ -235,14 +236,30 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
     assert rows.idx.tolist() == [0, 1, 2] and smooth["num_images"] == 3
     assert smooth["smoothed_benign_accuracy"] == rows.correct.mean()
     assert smooth["abstain_rate"] == (rows.predict == ABSTAIN).mean()
-    for name in ("uniform", "grid"):
-        out = run_task(
-            tiny_cfg(["task=attack", f"attack={name}", "attack.k=4", "task.n=20", "task.max=3", ck], tmp_path / name),
-            tmp_path / name / "a",
-        )
+    failures = set()
+    # With n = 6 PREDICT cannot decide even when all votes agree (binomial p = 2^-5 > alpha).
+    for name, n, most in (("uniform", 20, 18), ("grid", 6, 3)):
+        overrides = ["task=attack", f"attack={name}", "attack.k=4", f"task.n={n}", f"task.max={most}", ck]
+        out = run_task(tiny_cfg(overrides, tmp_path / name), tmp_path / name / "a")
         df = read_log(next((tmp_path / name / "a").glob("attack.tsv")), ["idx", "base_robust"])
         assert out["base_robust_accuracy"] == df["base_robust"].mean() <= out["base_benign_accuracy"] + 1e-12
         assert (df["base_worst"].abs() <= 0.1).all()
+        # The smoothed columns, recomputed with PREDICT at each perturbed pose in turn: robust only
+        # if right at all K; else the first failing motion and how it failed.
+        acfg = tiny_cfg(["task=attack", f"attack={name}", "attack.k=4"], tmp_path / name)
+        for _, row in df.iterrows():
+            i, render = int(row.idx), samples[int(row.idx)].renderer()
+            smoothed = SmoothedClassifier(model, SmoothingDistribution(("tz",), (0.1,)), 3)
+            expected = (1, "-", None)
+            for k, m in enumerate(attack_motions(acfg.attack, "tz", int(acfg.seed), i)):
+                decision = smoothed.predict(render, n, 0.01, image_generator(acfg.seed, i, "predict", k), m)
+                if decision != row.label:
+                    expected = (0, "abstain" if decision == ABSTAIN else "wrong", float(m[2]))
+                    break
+            assert (row.smoothed_robust, row.smoothed_failure) == expected[:2]
+            assert expected[2] is None or row.smoothed_worst == expected[2]
+            failures.add(row.smoothed_failure)
+    assert failures == {"-", "abstain", "wrong"}  # every outcome was checked
     grid = read_log(tmp_path / "grid" / "a" / "attack.tsv", ["idx"])
     assert set(np.round(grid["base_worst"], 9)) <= set(np.round(np.linspace(-0.1, 0.1, 4), 9))
 
