@@ -182,12 +182,16 @@ def test_sweep_table_from_a_parents_children(store):
     assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0"] == pytest.approx(0.6)
 
 
-def test_tables_task_writes_every_table_its_sources_and_the_figure(store):
+@pytest.fixture(scope="module")
+def tables_run(store):
+    """The tables task over the store, with the evidence page."""
     quoted = ",".join(f"'{o}'" for o in SETTINGS)
-    result = run_task(
-        compose_cfg(["task=tables", "task.experiment=demo", f"task.overrides=[{quoted}]"], store),
-        store / "runs" / "tables",
-    )
+    overrides = ["task=tables", "task.experiment=demo", f"task.overrides=[{quoted}]", f"task.page={store}/docs/r.md"]
+    return run_task(compose_cfg(overrides, store), store / "runs" / "tables")
+
+
+def test_tables_task_writes_every_table_its_sources_and_the_figure(store, tables_run):
+    result = tables_run
     out = Path(result["tables"])
     for name in ("table3_certified", "table1_augmented", "appendix_vanilla", "appendix_5_vs_100", "tabletop", "sweep"):
         for suffix in (".md", ".tex", ".csv"):
@@ -202,6 +206,59 @@ def test_tables_task_writes_every_table_its_sources_and_the_figure(store):
     )
     shown = {a.path for a in mlflow.MlflowClient().list_artifacts(tables_run.info.run_id, "tables")}
     assert {"tables/table3_certified.json", "tables/certified_accuracy_vs_radius.png"} <= shown  # log_table, log_figure
+
+
+def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
+    """docs/results.md-style page: the Table 3 row, the findings and the timings, each equal to
+    what the runs' own per-image logs give when recomputed here."""
+    page = " ".join((store / "docs" / "r.md").read_text().split())
+    assert (store / "docs" / "r_certified_accuracy_vs_radius.png").is_file()
+    clog = read_log(next((store / "runs" / "certify").glob("certify.tsv")), ["idx"])
+    slog = read_log(next((store / "runs" / "smooth").glob("smooth.tsv")), ["idx"])
+    alog = read_log(next((store / "runs" / "attack").glob("attack.tsv")), ["idx"])
+    radius = float(compose_cfg([*DEMO, "task=certify"], store).motion.radius)
+    certified = (clog.correct == 1) & (clog.radius >= radius) & (clog.predict >= 0)
+    row = f"| {slog.correct.mean():.3f} | {alog.smoothed_robust.mean():.3f} | {certified.mean():.3f} |"
+    assert f"| Tz | Smoothed Vanilla SmallCNN {row}" in page
+    # Finding 2: smoothed vs base 5-perturbed accuracy on the same images.
+    assert f"Tz vanilla {alog.smoothed_robust.mean():.3f} vs {alog.base_robust.mean():.3f}" in page
+    # Finding 3: certified accuracy on the attacked images vs the smoothed 5-perturbed accuracy,
+    # and every certified image that the attack broke, by how it failed.
+    on_attacked = certified[clog.idx.isin(alog.idx)].sum() / len(alog)
+    assert f"Tz vanilla {on_attacked:.3f} vs {alog.smoothed_robust.mean():.3f}" in page
+    broken = alog[alog.idx.isin(clog.idx[certified]) & (alog.smoothed_robust != 1)]
+    abstained = int((broken.smoothed_failure == "abstain").sum())
+    assert f"Of the certified images, {len(broken)} failed the attack: {abstained} by a PREDICT abstention" in page
+    # Time per stage: seconds per image from the per-image logs.
+    assert f"| certify | 1 | {len(clog)} |" in page and f"| {round(clog.seconds.mean(), 2)} |" in page
+
+
+def test_findings_count_what_the_logs_hold():
+    """The page's findings on hand-made logs whose answers are known: of 4 test images, 0, 1 and 2
+    are certified at r (3 has a larger radius but a wrong prediction); the attack ran on 0, 2 and
+    3; the certified image 2 failed it by an abstention, the uncertified 3 by another class."""
+    from types import SimpleNamespace
+
+    from mrcert.reporting.cells import Cell
+    from mrcert.reporting.results_page import Job, findings
+
+    cfg = compose_cfg([*DEMO, "task=certify"], Path("/tmp"))
+    r = float(cfg.motion.radius)
+    clog = pd.DataFrame({"idx": [0, 1, 2, 3], "predict": [0, 1, 2, 0], "correct": [1, 1, 1, 0],
+                         "radius": [2 * r, r, 3 * r, 5 * r]})  # fmt: skip
+    alog = pd.DataFrame({"idx": [0, 2, 3], "smoothed_robust": [1, 0, 0], "smoothed_failure": ["-", "abstain", "wrong"]})
+    metrics = {("certify", "certified_accuracy"): 0.75, ("attack", "base_robust_accuracy"): 1.0,
+               ("attack", "smoothed_robust_accuracy"): 1 / 3}  # fmt: skip
+    cells = {name: Cell(cfg, [pd.Series({"run_id": name})]) for name in ("certify", "smooth", "attack")}
+    index = SimpleNamespace(
+        metric=lambda cell, key: metrics.get((cell.runs[0]["run_id"], key), float("nan")),
+        log=lambda cell: {"certify": clog, "attack": alog}.get(cell.runs[0]["run_id"]),
+    )
+    found = findings(SimpleNamespace(index=index), [Job("tz", "vanilla", "small_cnn", *cells.values())])
+    assert "holds in 0 of 1 (same images, same motions) -- smoothed vs base: Tz vanilla 0.333 vs 1.000" in found[1]
+    assert "holds in 0 of 1 on the attacked images -- certified vs 5-perturbed: Tz vanilla 0.667 vs 0.333" in found[2]
+    assert "Of the certified images, 1 failed the attack: 1 by a PREDICT abstention" in found[2]
+    assert "and 0 by another class" in found[2]
 
 
 def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_expect(store):

@@ -173,15 +173,20 @@ def _verdict(holds: int, total: int) -> str:
 
 
 def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
-    """Wall-clock per stage: the runs' durations (start to end) and seconds per test image."""
+    """Time per stage: the runs' wall-clock (start to end, so a run that was interrupted and
+    resumed counts the time it was down) and the seconds per test image measured in the
+    per-image logs (work only)."""
     runs = {"train": set(), "certify": set(), "smooth": set(), "attack": set()}
     images = {"certify": 0, "smooth": 0, "attack": 0}
+    work = {"certify": 0.0, "smooth": 0.0, "attack": 0.0}
     for j in jobs:
         for stage in ("certify", "smooth", "attack"):
             cell = getattr(j, stage)
             runs[stage].update(cell.run_ids)
             log = src.index.log(cell)
-            images[stage] += 0 if log is None else len(log)
+            if log is not None:
+                images[stage] += len(log)
+                work[stage] += float(log["seconds"].sum()) if "seconds" in log else float("nan")
             if cell.filled and "tags.mrcert.train_run" in cell.runs[0]:
                 runs["train"].add(str(cell.runs[0]["tags.mrcert.train_run"]))
     df = src.index.df.set_index("run_id")
@@ -189,14 +194,13 @@ def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
     for stage, ids in runs.items():
         ids = [i for i in ids if i in df.index]
         seconds = float(sum((df.loc[i, "end_time"] - df.loc[i, "start_time"]).total_seconds() for i in ids))
-        per_image = seconds / images[stage] if images.get(stage) else float("nan")
         rows.append(
             {
                 "stage": stage,
                 "runs": len(ids),
                 "test images": images.get(stage, ""),
                 "wall-clock (h)": round(seconds / 3600, 2),
-                "seconds per image": "" if np.isnan(per_image) else round(per_image, 2),
+                "seconds per image": round(work[stage] / images[stage], 2) if images.get(stage) else "",
             }
         )
     return pd.DataFrame(rows)
@@ -262,7 +266,15 @@ def write_page(src: Source, experiment: str, table: pd.DataFrame, figure: Path, 
             markdown(as_text(general)),
             "",
         ]
-    lines += ["## Time per stage", "", markdown(times.astype(str)), ""]
+    lines += [
+        "## Time per stage",
+        "",
+        "Wall-clock from each run's start to its end (a run that was interrupted and resumed also counts the time "
+        "it was down); seconds per image from the per-image logs.",
+        "",
+        markdown(times.astype(str)),
+        "",
+    ]
     lines += [f"Machine: {'; '.join(machines) or 'unknown'}.", ""]
     lines += [
         "## Where the numbers come from",
