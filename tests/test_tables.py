@@ -229,6 +229,15 @@ def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
     broken = alog[alog.idx.isin(clog.idx[certified]) & (alog.smoothed_robust != 1)]
     abstained = int((broken.smoothed_failure == "abstain").sum())
     assert f"Of the certified images, {len(broken)} failed the attack: {abstained} by a PREDICT abstention" in page
+    # Test views beside their nearest training views, with the closest pitch and roll gaps.
+    from mrcert.data.sources import load
+
+    bundle = load(compose_cfg([*DEMO, "task=certify"], store).data)
+    test, train = bundle.split("test").params, bundle.split("train").params
+    pitch = min(abs(a - b) for a in train[:, 1] for b in test[:, 1])
+    roll = min(abs(a - b) for a in train[:, 2] for b in test[:, 2])
+    assert f"{pitch:.1f} in pitch and {roll:.1f} in roll (separation rule `every`)" in page and pitch >= 15
+    assert (store / "docs" / "r_views.png").is_file()
     # Time per stage: seconds per image from the per-image logs.
     assert f"| certify | 1 | {len(clog)} |" in page and f"| {round(clog.seconds.mean(), 2)} |" in page
 

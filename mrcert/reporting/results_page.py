@@ -206,8 +206,18 @@ def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def write_page(src: Source, experiment: str, table: pd.DataFrame, figure: Path, page: Path, command: str) -> Path:
-    """Write the evidence page for ``experiment`` to ``page`` (the figure is copied beside it)."""
+def write_page(
+    src: Source,
+    experiment: str,
+    table: pd.DataFrame,
+    figure: Path,
+    page: Path,
+    command: str,
+    views: tuple[Path, str] | None = None,
+) -> Path:
+    """Write the evidence page for ``experiment`` to ``page`` (the figure is copied beside it).
+    ``views``: a picture of test views beside their nearest training views (written beside the
+    page) and a sentence on their angles."""
     jobs = jobs_of(src, experiment, 5)
     page.parent.mkdir(parents=True, exist_ok=True)
     picture = page.with_name(f"{page.stem}_certified_accuracy_vs_radius.png")
@@ -250,6 +260,15 @@ def write_page(src: Source, experiment: str, table: pd.DataFrame, figure: Path, 
             "poses (which selected `best.pt`) and on the test images.",
             "",
             markdown(as_text(models)),
+            "",
+        ]
+    if views is not None:
+        lines += [
+            "## Test views beside the nearest training views",
+            "",
+            views[1],
+            "",
+            f"![test views and the nearest training views]({views[0].name})",
             "",
         ]
     general = generalization(src)

@@ -8,13 +8,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from omegaconf import DictConfig
 
+from mrcert.data.sources import load
+from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
 from mrcert.infra.tasks import RunContext
 from mrcert.infra.tracking import configure, ensure_experiment
 from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
+from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.plots import save
 from mrcert.reporting.writers import as_text, markdown, write
 
@@ -88,7 +92,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
         table = tables.certified_table(src, show_paper=True, name="page")
         command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
-        page = write_page(src, str(t.experiment or "table3"), table, figure, Path(t.page), command)
+        page = Path(t.page)
+        cells = [c for _, c in src.rows(str(t.experiment or "table3"), tables.SMOOTHED_BENIGN)]
+        views = nearest_views(cells[0].cfg.data, page.with_name(f"{page.stem}_views.png")) if cells else None
+        page = write_page(src, str(t.experiment or "table3"), table, figure, page, command, views)
         ctx.tracker.log_artifact(page, "tables")
         print(f"\nEvidence page: {page.resolve()}")
     ctx.tracker.log_metrics(metrics)
@@ -106,3 +113,50 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         f"MLflow: make ui  (or: mlflow ui --backend-store-uri {cfg.tracking.uri})"
     )
     return metrics | {"tables": str(out.resolve())}
+
+
+def _angle_gaps(train: np.ndarray, test: np.ndarray) -> np.ndarray:
+    """|difference| of (yaw, pitch, roll) in degrees between (N, 3) and (3,), yaw on the circle."""
+    d = np.abs(train - test)
+    d[:, 0] = np.minimum(d[:, 0] % 360.0, 360.0 - d[:, 0] % 360.0)
+    return d
+
+
+def nearest_views(data: DictConfig, path: Path, classes: tuple[int, ...] = (0, 5, 10)) -> tuple[Path, str] | None:
+    """For a few classes, the first test view beside the three training views nearest to it in
+    angle (the largest of the yaw, pitch and roll differences): what a classifier must
+    generalise across. Returns the contact sheet and one sentence on the pitches and rolls the
+    training views have, measured from the poses; None for data other than synthetic scenes."""
+    bundle = load(data)
+    if not isinstance(bundle, SyntheticData):
+        return None
+    test, train = bundle.split("test"), bundle.split("train")
+    test_images, train_images = bundle.test().images, bundle.train().images
+
+    def image(a: np.ndarray) -> torch.Tensor:
+        return torch.tensor(a).permute(2, 0, 1).float() / 255
+
+    def angles(p: np.ndarray) -> str:
+        return f"yaw {p[0]:.0f}, pitch {p[1]:.0f}, roll {p[2]:.0f}"
+
+    rows, names, captions = [], [], []
+    for c in (c for c in classes if c < len(bundle.classes)):
+        i = int(np.flatnonzero(test.labels == c)[0])
+        own = np.flatnonzero(train.labels == c)
+        near = own[np.argsort(_angle_gaps(train.params[own, :3], test.params[i, :3]).max(axis=1), kind="stable")[:3]]
+        rows.append([image(test_images[i]), *(image(train_images[k]) for k in near)])
+        names.append(bundle.classes[c])
+        captions.append([f"test: {angles(test.params[i])}", *(f"train: {angles(train.params[k])}" for k in near)])
+    title = "a test view (left) and the 3 training views nearest to it in angle"
+    contact_sheet(rows, names, captions, path, title=title)
+    gaps = np.stack([_angle_gaps(train.params[:, :3], q[:3]) for q in test.params])  # (tests, train, 3)
+    closest = gaps.min(axis=(0, 1))
+    sentence = (
+        f"Test views: pitch {', '.join(f'{v:g}' for v in np.unique(test.params[:, 1]))} and roll "
+        f"{', '.join(f'{v:g}' for v in np.unique(test.params[:, 2]))} degrees; training views: pitch "
+        f"{train.params[:, 1].min():.0f} to {train.params[:, 1].max():.0f}, roll {train.params[:, 2].min():.0f} to "
+        f"{train.params[:, 2].max():.0f}. No training view comes closer to a test view than {closest[0]:.1f} degrees "
+        f"in yaw, {closest[1]:.1f} in pitch and {closest[2]:.1f} in roll (separation rule "
+        f"`{data.protocol.get('separation_rule', 'every')}`)."
+    )
+    return path, sentence
