@@ -186,7 +186,12 @@ def test_sweep_table_from_a_parents_children(store):
 def tables_run(store):
     """The tables task over the store, with the evidence page."""
     quoted = ",".join(f"'{o}'" for o in SETTINGS)
-    overrides = ["task=tables", "task.experiment=demo", f"task.overrides=[{quoted}]", f"task.page={store}/docs/r.md"]
+    overrides = [
+        "task=tables",
+        "task.experiment=demo",
+        f"task.overrides=[{quoted}]",
+        f"task.page={store}/evidence/r.md",
+    ]
     return run_task(compose_cfg(overrides, store), store / "runs" / "tables")
 
 
@@ -209,10 +214,10 @@ def test_tables_task_writes_every_table_its_sources_and_the_figure(store, tables
 
 
 def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
-    """docs/results.md-style page: the Table 3 row, the findings and the timings, each equal to
-    what the runs' own per-image logs give when recomputed here."""
-    page = " ".join((store / "docs" / "r.md").read_text().split())
-    assert (store / "docs" / "r_certified_accuracy_vs_radius.png").is_file()
+    """The evidence page (as `make results` writes it): the Table 3 row, the findings and the
+    timings, each equal to what the runs' own per-image logs give when recomputed here."""
+    page = " ".join((store / "evidence" / "r.md").read_text().split())
+    assert (store / "evidence" / "r_certified_accuracy_vs_radius.png").is_file()
     clog = read_log(next((store / "runs" / "certify").glob("certify.tsv")), ["idx"])
     slog = read_log(next((store / "runs" / "smooth").glob("smooth.tsv")), ["idx"])
     alog = read_log(next((store / "runs" / "attack").glob("attack.tsv")), ["idx"])
@@ -237,7 +242,7 @@ def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
     pitch = min(abs(a - b) for a in train[:, 1] for b in test[:, 1])
     roll = min(abs(a - b) for a in train[:, 2] for b in test[:, 2])
     assert f"{pitch:.1f} in pitch and {roll:.1f} in roll (separation rule `every`)" in page and pitch >= 15
-    assert (store / "docs" / "r_views.png").is_file()
+    assert (store / "evidence" / "r_views.png").is_file()
     # Time per stage: seconds per image from the per-image logs.
     assert f"| certify | 1 | {len(clog)} |" in page and f"| {round(clog.seconds.mean(), 2)} |" in page
 
