@@ -275,6 +275,21 @@ def test_findings_count_what_the_logs_hold():
     assert "and 0 by another class" in found[2]
 
 
+def test_the_why_sentence_follows_the_numbers():
+    from mrcert.reporting.results_page import why
+
+    models = pd.DataFrame({"validation accuracy": [1.0, 0.975], "test accuracy": [0.117, 0.267]})
+    general = pd.DataFrame(
+        {"separation rule": ["every", "every", "any", "any"], "training poses per class": [40, 80, 40, 80]}
+    ).assign(**{"test accuracy": [0.2, 0.3, 0.4, 0.7]})
+    text = why(models, general)
+    assert "0.97 to 1.00 on held-out training poses but only 0.12 to 0.27 on the test images" in text
+    assert "With 80 training poses per class the small CNN's test accuracy is 0.30 under `every` and 0.70" in text
+    assert "not the certification, sets the level" in text
+    general.loc[3, "test accuracy"] = 0.35
+    assert "the separation rule alone does not explain the gap" in why(models, general)
+
+
 def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_expect(store):
     from mrcert.infra.tracking import ui_link_for
 

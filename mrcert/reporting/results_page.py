@@ -162,6 +162,31 @@ def generalization(src: Source, experiment: str = "generalization") -> pd.DataFr
     return pd.DataFrame(rows)
 
 
+def why(models: pd.DataFrame, general: pd.DataFrame) -> str:
+    """One sentence from the numbers: how well the evaluated base models generalise, and how
+    much the separation rule moves the generalization experiment's test accuracy."""
+    val, test = models["validation accuracy"].astype(float), models["test accuracy"].astype(float)
+    most = general["training poses per class"].max()
+    at = general[general["training poses per class"] == most].set_index("separation rule")["test accuracy"]
+    text = (
+        f"In short: the evaluated base models reach {val.min():.2f} to {val.max():.2f} on held-out training poses "
+        f"but only {test.min():.2f} to {test.max():.2f} on the test images."
+    )
+    if {"every", "any"} <= set(at.index):
+        every, any_ = float(at["every"]), float(at["any"])
+        verdict = (
+            "the distance of the test views from every training view, not the certification, sets the level of "
+            "these numbers"
+            if any_ - every >= 0.1
+            else "the separation rule alone does not explain the gap"
+        )
+        text += (
+            f" With {most} training poses per class the small CNN's test accuracy is {every:.2f} under `every` and "
+            f"{any_:.2f} under `any`: {verdict}."
+        )
+    return text
+
+
 def _share(skip: int) -> str:
     return "every test image" if skip == 1 else f"one test image in {skip}"
 
@@ -293,6 +318,8 @@ def write_page(
             markdown(as_text(general)),
             "",
         ]
+        if len(models):
+            lines += [why(models, general), ""]
     lines += [
         "## Time per stage",
         "",
