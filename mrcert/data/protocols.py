@@ -65,19 +65,22 @@ class PoseSet:
 RULES = ("every", "any")
 
 
+def differences(poses: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """|difference| of every quantity between poses (N, 4) and others (M, 4): (N, M, 4), yaw on the circle."""
+    diff = np.abs(poses[:, None, :] - others[None, :, :])
+    yaw = QUANTITIES.index("yaw")
+    diff[..., yaw] = np.minimum(diff[..., yaw] % 360.0, 360.0 - diff[..., yaw] % 360.0)
+    return diff
+
+
 def separated(candidates: np.ndarray, tests: np.ndarray, gaps: dict[str, float], rule: str = "every") -> np.ndarray:
     """Mask of candidates (N, 4) separated from every test pose (M, 4) by ``rule`` (see above)."""
     if rule not in RULES:
         raise ValueError(f"separation rule {rule!r} is not one of {RULES}")
     if len(tests) == 0 or not gaps:
         return np.ones(len(candidates), bool)
-    apart = []
-    for q, gap in gaps.items():
-        i = QUANTITIES.index(q)
-        diff = np.abs(candidates[:, None, i] - tests[None, :, i])
-        if q == "yaw":
-            diff = np.minimum(diff % 360.0, 360.0 - diff % 360.0)
-        apart.append(diff >= gap)
+    diff = differences(candidates, tests)
+    apart = [diff[:, :, QUANTITIES.index(q)] >= gap for q, gap in gaps.items()]
     far = np.logical_and.reduce(apart) if rule == "every" else np.logical_or.reduce(apart)
     return far.all(axis=1)
 

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from mrcert.data.protocols import differences
 from mrcert.data.sources import load
 from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
@@ -92,10 +93,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
         table = tables.certified_table(src, show_paper=True, name="page")
         command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
-        page = Path(t.page)
-        cells = [c for _, c in src.rows(str(t.experiment or "table3"), tables.SMOOTHED_BENIGN)]
+        page, experiment = Path(t.page), str(t.experiment or "table3")
+        cells = [c for _, c in src.rows(experiment, tables.SMOOTHED_BENIGN)]
         views = nearest_views(cells[0].cfg.data, page.with_name(f"{page.stem}_views.png")) if cells else None
-        page = write_page(src, str(t.experiment or "table3"), table, figure, page, command, views)
+        page = write_page(src, experiment, table, figure, page, command, views)
         ctx.tracker.log_artifact(page, "tables")
         print(f"\nEvidence page: {page.resolve()}")
     ctx.tracker.log_metrics(metrics)
@@ -113,13 +114,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         f"MLflow: make ui  (or: mlflow ui --backend-store-uri {cfg.tracking.uri})"
     )
     return metrics | {"tables": str(out.resolve())}
-
-
-def _angle_gaps(train: np.ndarray, test: np.ndarray) -> np.ndarray:
-    """|difference| of (yaw, pitch, roll) in degrees between (N, 3) and (3,), yaw on the circle."""
-    d = np.abs(train - test)
-    d[:, 0] = np.minimum(d[:, 0] % 360.0, 360.0 - d[:, 0] % 360.0)
-    return d
 
 
 def nearest_views(data: DictConfig, path: Path, classes: tuple[int, ...] = (0, 5, 10)) -> tuple[Path, str] | None:
@@ -143,14 +137,14 @@ def nearest_views(data: DictConfig, path: Path, classes: tuple[int, ...] = (0, 5
     for c in (c for c in classes if c < len(bundle.classes)):
         i = int(np.flatnonzero(test.labels == c)[0])
         own = np.flatnonzero(train.labels == c)
-        near = own[np.argsort(_angle_gaps(train.params[own, :3], test.params[i, :3]).max(axis=1), kind="stable")[:3]]
+        nearest = differences(train.params[own], test.params[i : i + 1])[:, 0, :3].max(axis=1)
+        near = own[np.argsort(nearest, kind="stable")[:3]]
         rows.append([image(test_images[i]), *(image(train_images[k]) for k in near)])
         names.append(bundle.classes[c])
         captions.append([f"test: {angles(test.params[i])}", *(f"train: {angles(train.params[k])}" for k in near)])
     title = "a test view (left) and the 3 training views nearest to it in angle"
     contact_sheet(rows, names, captions, path, title=title)
-    gaps = np.stack([_angle_gaps(train.params[:, :3], q[:3]) for q in test.params])  # (tests, train, 3)
-    closest = gaps.min(axis=(0, 1))
+    closest = differences(train.params, test.params)[..., :3].min(axis=(0, 1))  # yaw, pitch, roll
     sentence = (
         f"Test views: pitch {', '.join(f'{v:g}' for v in np.unique(test.params[:, 1]))} and roll "
         f"{', '.join(f'{v:g}' for v in np.unique(test.params[:, 2]))} degrees; training views: pitch "
