@@ -14,8 +14,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mrcert.infra.identity import identify
-from mrcert.infra.tasks import TASKS
 from mrcert.reporting.cells import Cell
 from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust, sweep_combos
 from mrcert.reporting.writers import as_text, markdown
@@ -144,12 +142,10 @@ def generalization(src: Source, experiment: str = "generalization") -> pd.DataFr
     training poses per class (empty when it has not run)."""
     rows = []
     for combo in sweep_combos(experiment):
-        cfg = src.index.cell((f"experiment={experiment}", f"profile={src.profile}", "task=train", *combo)).cfg
-        key = identify(cfg, TASKS["train"].identity).key
-        hits = src.index.df[src.index.df["tags.mrcert.key"] == key]
-        if hits.empty:
+        cell = src.index.cell((f"experiment={experiment}", f"profile={src.profile}", "task=train", *combo))
+        if not cell.filled:
             continue
-        run = hits.iloc[0]
+        cfg, run = cell.cfg, cell.runs[0]
         rows.append(
             {
                 "separation rule": cfg.data.protocol.separation_rule,
