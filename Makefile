@@ -13,7 +13,7 @@ THREADS ?= 2
 DEVICE ?= cpu
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo reproduce-tables results test test-full test-gpu bench ui server clean lint
+.PHONY: help install demo reproduce-tables results learning-curve test test-full test-gpu bench ui server clean lint
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -42,8 +42,12 @@ reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished
 results: $(STAMP) ## the evidence page docs/results.md: ResNet-18, six axes, all 120 test images (hours on 2 CPU cores)
 	$(MRCERT) -m experiment=results task=train
 	$(MRCERT) -m experiment=results task=certify,smooth,attack
-	$(MRCERT) -m experiment=generalization task=train
+	$(MRCERT) -m experiment=results task=certify task.sequential=true
+	$(MRCERT) -m experiment=learning_curve task=train
 	$(MRCERT) task=tables task.experiment=results task.page=docs/results.md
+
+learning-curve: $(STAMP) ## the learning curve: a small CNN's test accuracy by training poses, separation rule, seed
+	$(MRCERT) -m experiment=learning_curve task=train
 
 test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)
 	OMP_NUM_THREADS=$(THREADS) NUMBA_NUM_THREADS=$(THREADS) $(PY) -m pytest -q
@@ -57,6 +61,7 @@ test-gpu: $(STAMP) ## the CUDA tests (skipped without a GPU)
 bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run (DEVICE=cuda for the GPU path)
 	$(PY) benchmarks/projection.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/certify.py --threads $(THREADS) --device $(DEVICE)
+	$(PY) benchmarks/train.py --threads $(THREADS) --device $(DEVICE)
 
 ui: $(STAMP) ## MLflow UI on the project's store, opened on the experiment's runs (PORT=... to change)
 	@$(PY) -c 'from mrcert.infra.tracking import ui_link_for; print("MLflow UI:", ui_link_for("$(abspath $(OUTPUTS))", "http://127.0.0.1:$(PORT)"))'

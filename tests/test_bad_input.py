@@ -30,6 +30,7 @@ KEYS = [
     "task.n0",
     "task.n",
     "task.alpha",
+    "task.decision",
     "task.skip",
     "task.max",
     "task.shard",
@@ -56,7 +57,7 @@ VALUES = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
     st.text(alphabet=st.characters(blacklist_characters="${}\\"), max_size=8),
     st.lists(st.integers(-5, 5), max_size=3),
-    st.sampled_from(["tx", "rz", "tw", "tx+rz", "cuda:1", "gpu", "vanilla", "???"]),
+    st.sampled_from(["tx", "rz", "tw", "tx+rz", "cuda:1", "gpu", "vanilla", "vote", "predict", "???"]),
 )
 
 
@@ -83,6 +84,7 @@ ALLOWED = {
     "task.n0": lambda v: integer(v, 1),
     "task.n": lambda v: integer(v, 1),
     "task.alpha": lambda v: number(v) and 0 < v < 1,
+    "task.decision": lambda v: v in ("predict", "vote"),
     "task.skip": lambda v: integer(v, 1),
     "task.max": lambda v: v is None or integer(v, 1),
     "task.shard": lambda v: integer(v, 0),

@@ -136,7 +136,7 @@ EXPERIMENT_TASKS = {
     "tabletop": ("train", "smooth", "attack"),
     "sweep": ("certify",),
     "results": ("train", "certify", "smooth", "attack"),
-    "generalization": ("train",),
+    "learning_curve": ("train",),
 }
 
 

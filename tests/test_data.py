@@ -93,8 +93,27 @@ def test_every_metaroom_training_pose_is_apart_from_every_test_pose_in_every_ang
         cfg = compose("config", overrides=["data=metaroom_synth", f"profile={profile}", f"paths.outputs={tmp_path}"])
     bundle = load(cfg.data)
     test, train = bundle.split("test"), bundle.split("train")
-    assert len(train) == 20 * (40 if profile == "quick" else 500)
+    assert len(train) == 20 * 500
     assert_strictly_separated(pose_angles(train.poses), pose_angles(test.poses))
+
+
+def test_metaroom_validation_poses_stand_to_the_training_poses_as_the_test_poses_do(tmp_path):
+    """Selection poses: as far from every training pose in pitch and roll as the test poses (the
+    same pitch extrapolation and roll gap), 30 deg in yaw from every test pose (never a test pose),
+    and costing no training pose."""
+    bundle = load(data_cfg("metaroom_synth", [*TINY, "data.protocol.train.per_class=300"], tmp_path))
+    val, test, train = (pose_angles(bundle.split(s).poses) for s in ("validation", "test", "train"))
+    assert np.bincount(bundle.split("validation").labels).tolist() == [6, 6]
+    gap = lambda a, b, q: np.abs(a[:, None, q] - b[None, :, q]).min(axis=1)  # nearest, per pose of a
+    for q in (1, 2):  # pitch, roll: the validation poses' gaps to the training poses are the test poses'
+        np.testing.assert_allclose(np.sort(gap(val, train, q)), np.sort(gap(test, train, q)), atol=1e-9)
+        assert gap(val, train, q).min() >= 15 - 1e-9
+    d_yaw = np.abs((val[:, None, 0] - test[None, :, 0] + 180) % 360 - 180)
+    np.testing.assert_allclose(d_yaw.min(axis=1), 30.0, atol=1e-9)
+    no_validation = [*TINY, "data.protocol.train.per_class=300", "~data.protocol.validation"]
+    without = load(data_cfg("metaroom_synth", no_validation, tmp_path))
+    assert not without.has_split("validation") and without.validation() is None
+    assert np.array_equal(without.split("train").poses, bundle.split("train").poses)
 
 
 def test_tabletop_protocol(tmp_path):
@@ -102,9 +121,10 @@ def test_tabletop_protocol(tmp_path):
         "tabletop_synth", ["data.protocol.train.per_class=200", "data.density=0.01", "data.room_density=0.02"], tmp_path
     )
     bundle = load(data)
-    test, train = bundle.split("test"), bundle.split("train")
+    test, train, val = bundle.split("test"), bundle.split("train"), bundle.split("validation")
     assert np.bincount(test.labels).tolist() == [19] * 6 and np.bincount(train.labels).tolist() == [200] * 6
-    for split in (test, train):
+    assert np.bincount(val.labels).tolist() == [19] * 6
+    for split in (test, train, val):
         a = pose_angles(split.poses, yaw_offset=180.0)
         assert (np.abs(a[:, 0]) <= 30 + 1e-9).all() and (a[:, 1] >= 35).all() and (a[:, 1] <= 65).all()
         assert (np.abs(a[:, 2]) <= 60 + 1e-9).all() and (a[:, 3] >= 0.35).all() and (a[:, 3] <= 0.45).all()
@@ -115,6 +135,11 @@ def test_tabletop_protocol(tmp_path):
         d = np.abs(tr[:, None, :] - te[None, :, :])
         close = (d[..., 0] < 10) & (d[..., 1] < 5) & (d[..., 2] < 20) & (d[..., 3] < 0.016)
         assert not close.any()
+        # The validation poses are drawn like the test poses and kept apart from training the same way.
+        va = pose_angles(val.poses[val.labels == label], yaw_offset=180.0)
+        d = np.abs(tr[:, None, :] - va[None, :, :])
+        assert not ((d[..., 0] < 10) & (d[..., 1] < 5) & (d[..., 2] < 20) & (d[..., 3] < 0.016)).any()
+        assert not np.isin(va, te).all(axis=1).any()
 
 
 def test_generation_is_deterministic_and_seeded(tmp_path):

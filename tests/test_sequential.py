@@ -68,7 +68,6 @@ def test_sequential_decision_error_rate_on_simulated_streams():
     errors = sum(c.prediction == 1 and c.radius >= radius for c in certs)
     assert errors / 400 <= alpha
     assert np.mean([c.n for c in certs]) < n_max  # it does stop early when the answer is clear ("cannot be reached")
-    assert all(c.n % look == 0 for c in certs)  # it only stops at looks
 
 
 def test_sequential_certificates_follow_their_sequence_and_save_samples():

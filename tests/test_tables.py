@@ -150,6 +150,23 @@ def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, 
     assert "ambiguous: 2 different finished runs" in notes[("Tz / Smoothed Augmented SmallCNN", "Certified Acc")]
 
 
+def test_table_3_of_the_released_metaroom_from_imported_logs(tmp_path):
+    """The authors' logs, imported under the released data set, fill its Table 3 when the tables
+    are built for that data set -- and never the synthetic MetaRoom's."""
+    log = tmp_path / "cohen.tsv"
+    log.write_text(COHEN)
+    released = ["data=metaroom", "profile=paper", "model=resnet18", "motion=tz", "model.variant=augmented"]
+    done = run_cli(["task=import", f"task.path={log}", *released], tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    for data, expected in (("data=metaroom", "0.400 (0.817)"), (None, "(0.817)")):
+        args = ["task=tables", "task.source=import", "profile=paper", "task.show_paper=true", *([data] if data else [])]
+        built = run_cli(args, tmp_path)
+        assert built.returncode == 0, built.stderr[-2000:]
+        table = pd.read_csv(tmp_path / "tables" / "table3_certified.csv", keep_default_na=False)
+        row = table[(table.Axis == "Tz") & (table.Model == "Smoothed Augmented ResNet-18")]
+        assert row["Certified Acc"].str.strip().tolist() == [expected]
+
+
 def test_written_files_keep_empty_cells_empty_and_latex_balanced(store, tmp_path):
     src = source(store)
     df = tables.certified_table(src)
@@ -275,19 +292,55 @@ def test_findings_count_what_the_logs_hold():
     assert "and 0 by another class" in found[2]
 
 
-def test_the_why_sentence_follows_the_numbers():
+def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
+    """Two jobs of the learning-curve sweep, run for real on tiny data: one row each, with the
+    selected model's accuracies as the runs logged them and each epoch's history."""
+    from mrcert.reporting import learning_curve
+
+    tiny = [o for o in SETTINGS if not o.startswith("data.protocol.train.per_class")]
+    results = {}
+    for rule in ("every", "any"):
+        job = ["experiment=learning_curve", "task=train", f"data.protocol.separation_rule={rule}", *tiny]
+        results[rule] = run(tmp_path, [*job, "data.protocol.train.per_class=40", "seed=0"], f"lc-{rule}")
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    src = tables.Source(RunIndex.gather("mrcert"), "quick", overrides=tuple(tiny))
+    df = learning_curve.runs(src).set_index("separation rule")
+    assert sorted(df.index) == ["any", "every"] and (df["training poses per class"] == 40).all()
+    for rule, result in results.items():
+        assert df.loc[rule, "test accuracy"] == result["test_acc"]
+        assert df.loc[rule, "validation accuracy"] == result["best_val_acc"]
+        hist = learning_curve.histories(df.loc[[rule]])[df.loc[rule, "run_id"]]
+        assert len(hist["epoch_test_acc"]) == len(hist["val_acc"]) == 2  # SETTINGS: two epochs
+    fig = learning_curve.figure(df.reset_index(), learning_curve.histories(df))
+    assert len(fig.axes[0].lines) >= 2 and len(fig.axes[1].lines) == 2  # every: test and validation per epoch
+
+
+def test_the_learning_curve_table_and_the_why_sentence_follow_the_numbers():
+    from mrcert.reporting import learning_curve
     from mrcert.reporting.results_page import why
 
-    models = pd.DataFrame({"validation accuracy": [1.0, 0.975], "test accuracy": [0.117, 0.267]})
-    general = pd.DataFrame(
-        {"separation rule": ["every", "every", "any", "any"], "training poses per class": [40, 80, 40, 80]}
-    ).assign(**{"test accuracy": [0.2, 0.3, 0.4, 0.7]})
-    text = why(models, general)
-    assert "0.97 to 1.00 on held-out training poses but only 0.12 to 0.27 on the test images" in text
-    assert "With 80 training poses per class the small CNN's test accuracy is 0.30 under `every` and 0.70" in text
-    assert "not the certification, sets the level" in text
-    general.loc[3, "test accuracy"] = 0.35
-    assert "the separation rule alone does not explain the gap" in why(models, general)
+    models = pd.DataFrame({"validation accuracy": [1.0, 0.975], "test accuracy": [0.817, 0.867]})
+    curve = pd.DataFrame(
+        {
+            "separation rule": ["every"] * 5 + ["any"] * 2,
+            "training poses per class": [40, 40, 40, 500, 500, 40, 500],
+            "seed": [0, 1, 2, 0, 1, 0, 0],
+            "model": ["small_cnn"] * 7,
+            "validation accuracy": [0.5, 0.6, 0.7, 1.0, 1.0, 0.8, 1.0],
+            "test accuracy": [0.2, 0.3, 0.25, 0.9, 0.8, 0.6, 0.95],
+        }
+    )
+    table = learning_curve.table(curve).set_index(["separation rule", "training poses per class"])
+    assert table.index.tolist() == [("every", 40), ("every", 500), ("any", 40), ("any", 500)]  # every first
+    assert table.loc[("every", 40), "seeds"] == 3 and table.loc[("every", 40), "test accuracy (median)"] == 0.25
+    assert table.loc[("every", 500), "test accuracy (median)"] == 0.85  # median of two seeds
+    assert table.loc[("every", 40), "test accuracy (min-max)"] == "0.200-0.300"
+    text = why(models, curve)
+    assert "0.97 to 1.00 on the validation poses and 0.82 to 0.87 on the test images" in text
+    assert "0.25 with 40 training poses per class and 0.85 with 500 (under `any`: 0.95 with 500)" in text
+    assert "more training poses are what it takes" in text
+    curve.loc[curve["training poses per class"] == 500, "test accuracy"] = 0.3
+    assert "the number of training poses alone does not" in why(models, curve)
 
 
 def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_expect(store):
@@ -303,9 +356,9 @@ def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_e
     # The rendered data sets a model was trained and tested on, with their cache keys as digests.
     inputs = {(d.dataset.name, [t.value for t in d.tags][0]): d.dataset.digest
               for d in runs["train/vanilla"].inputs.dataset_inputs}  # fmt: skip
-    train_folder = next((store / "data").glob("metaroom_synth-train-*"))
+    train_folder = next(p for p in (store / "data").glob("metaroom_synth-train-*") if "-aug-" not in p.name)
     assert inputs[("metaroom_synth-train", "training")] == train_folder.name.rsplit("-", 1)[1]
-    assert ("metaroom_synth-test", "test") in inputs
+    assert ("metaroom_synth-test", "test") in inputs and ("metaroom_synth-validation", "validation") in inputs
     # The certified-accuracy curve is a figure of the certify run; the experiment opens on its runs.
     certify_files = {a.path for a in client.list_artifacts(runs["certify/vanilla"].info.run_id)}
     assert "certified_accuracy.png" in certify_files

@@ -16,7 +16,7 @@ from mrcert.data.holdout import validation_split
 from mrcert.data.sources import load
 from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier, local_checkpoint
-from mrcert.tasks.train import accuracy, as_tensors
+from mrcert.tasks.train import as_tensors, better, evaluate
 from tests.conftest import TINY, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -123,27 +123,53 @@ def test_checkpoint_lookup_finds_the_matching_run_and_names_the_command_when_non
         load_classifier(wrong, 3, torch.device("cpu"))
 
 
-def test_model_selection_uses_held_out_training_poses_never_the_test_poses(tmp_path):
-    result, cfg = train_in_process([*TINY_TRAIN, "train.epochs=3"], tmp_path, "select")
+def test_model_selection_uses_the_validation_poses_and_never_reads_the_test_images(tmp_path, monkeypatch):
+    args = [*TINY_TRAIN, "train.epochs=4"]
+    result, cfg = train_in_process(args, tmp_path / "a", "select")
     best = torch.load(Path(result["checkpoint"]), weights_only=True)
     bundle = load(cfg.data)
-    train_set = bundle.train()
-    _, val = validation_split(train_set.labels, 0.1, 0)
-    assert best["validation"]["indices"] == val.tolist() and len(val) == 3 * 2  # round(0.1 * 16) per class
-    # The selection images are training poses, none of them a test pose.
-    held_poses, test_poses = bundle.split("train").poses[val], bundle.split("test").poses
-    assert not any(np.allclose(h, t) for h in held_poses for t in test_poses)
+    val_x, val_y = as_tensors(bundle.validation())
+    assert len(val_y) == 3 * 6 and best["validation"]["source"] == "poses"
     model = build_model(cfg.model, 3)
     model.load_state_dict(best["model"])
-    images, labels = as_tensors(train_set)
-    assert accuracy(model, images[val], labels[val], "cpu", 64) == best["val_acc"] == result["best_val_acc"]
-    test_images, test_labels = as_tensors(bundle.test())
-    assert accuracy(model, test_images, test_labels, "cpu", 64) == result["test_acc"]
-    client = store(tmp_path)
+    assert evaluate(model, val_x, val_y, "cpu", 64)[0] == best["val_acc"] == result["best_val_acc"]
+    client = store(tmp_path / "a")
     (run,) = client.search_runs([client.get_experiment_by_name("mrcert").experiment_id])
-    assert run.data.metrics["train_images"] == 48 - 6 and run.data.metrics["val_images"] == 6
-    history = [m.value for m in client.get_metric_history(run.info.run_id, "val_acc")]
-    assert len(history) == 3 and best["val_acc"] == max(history) and history[best["epoch"]] == max(history)
+    assert run.data.metrics["train_images"] == 48 and run.data.metrics["val_images"] == 18  # every training pose trains
+    hist = {
+        m: [h.value for h in sorted(client.get_metric_history(run.info.run_id, m), key=lambda h: h.step)]
+        for m in ("val_acc", "val_loss", "epoch_test_acc")
+    }
+    # The chosen epoch: highest validation accuracy, ties to the lower validation loss, then the earlier epoch.
+    chosen = min(range(4), key=lambda e: (-hist["val_acc"][e], hist["val_loss"][e], e))
+    assert best["epoch"] == chosen and result["best_epoch"] == chosen + 1 and len(hist["epoch_test_acc"]) == 4
+
+    # Other test images -- inverted colours, shifted labels -- leave best.pt bit for bit unchanged.
+    from mrcert.data.datasets import ImageSet, PosedCloudData
+
+    original, reads = PosedCloudData.test, []
+
+    def other_test_images(self):
+        images = original(self)
+        reads.append(1)
+        return ImageSet(255 - np.array(images.images), (images.labels + 1) % 3, images.classes)
+
+    monkeypatch.setattr(PosedCloudData, "test", other_test_images)
+    other, _ = train_in_process(args, tmp_path / "b", "select")
+    other_best = torch.load(Path(other["checkpoint"]), weights_only=True)
+    assert reads, "the task did not read the (changed) test images"
+    assert other_best["epoch"] == best["epoch"] and other["test_acc"] != result["test_acc"]
+    assert all(torch.equal(other_best["model"][k], best["model"][k]) for k in best["model"])
+
+
+def test_selection_ties_go_to_the_lower_validation_loss_and_sources_without_poses_hold_out_training_poses(tmp_path):
+    assert better((0.9, 0.5), None) and better((1.0, 0.9), (0.9, 0.1)) and not better((0.9, 0.1), (1.0, 0.9))
+    assert better((1.0, 0.2), (1.0, 0.3)) and not better((1.0, 0.3), (1.0, 0.2)) and not better((1.0, 0.3), (1.0, 0.3))
+    # A source without validation poses: a seeded share of each class's training poses is held out.
+    result, cfg = train_in_process([*TINY_TRAIN, "train.epochs=2", "~data.protocol.validation"], tmp_path, "holdout")
+    best = torch.load(Path(result["checkpoint"]), weights_only=True)
+    _, val = validation_split(load(cfg.data).train().labels, 0.1, 0)
+    assert best["validation"]["indices"] == val.tolist() and len(val) == 3 * 2  # round(0.1 * 16) per class
     split = validation_split(np.repeat(np.arange(4), 10), 0.25, seed=5)
     again = validation_split(np.repeat(np.arange(4), 10), 0.25, seed=5)
     assert all((a == b).all() for a, b in zip(split, again, strict=True))  # seeded

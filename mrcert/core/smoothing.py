@@ -25,6 +25,7 @@ from mrcert.core.geometry import axis_index, compose
 from mrcert.errors import MrcertError
 
 ABSTAIN = -1
+DECISIONS = ("predict", "vote")  # how a smoothed prediction is decided from its votes (SmoothedClassifier.decide)
 """The smoothed classifier's answer when it cannot decide at the requested confidence."""
 
 
@@ -247,15 +248,28 @@ class SmoothedClassifier:
         return self.votes(render, motions)
 
     def predict(
-        self, render: Render, n: int, alpha: float, generator: torch.Generator, center: torch.Tensor | None = None
+        self,
+        render: Render,
+        n: int,
+        alpha: float,
+        generator: torch.Generator,
+        center: torch.Tensor | None = None,
+        rule: str = "predict",
     ) -> int:
-        """PREDICT at the pose moved by ``center`` (default: the test pose itself)."""
-        return self.decide(self.sample_counts(render, n, generator, center), alpha)
+        """The smoothed prediction at the pose moved by ``center`` (default: the test pose itself),
+        by ``rule`` (:meth:`decide`)."""
+        return self.decide(self.sample_counts(render, n, generator, center), alpha, rule)
 
     @staticmethod
-    def decide(counts: np.ndarray, alpha: float) -> int:
-        """The top class, or ABSTAIN unless the two-sided binomial test of the top two counts
-        rejects equality at level ``alpha``."""
+    def decide(counts: np.ndarray, alpha: float, rule: str = "predict") -> int:
+        """``predict`` (Cohen's PREDICT): the top class, or ABSTAIN unless the two-sided binomial
+        test of the top two counts rejects equality at level ``alpha``. ``vote`` (the paper's
+        robot experiment): the most frequent class, ties to the lowest class index; it never
+        abstains and carries no guarantee (``alpha`` unused)."""
+        if rule == "vote":
+            return int(np.argmax(counts))
+        if rule != "predict":
+            raise ValueError(f"decision rule {rule!r} is not one of {DECISIONS}")
         top2 = np.argsort(counts, kind="stable")[::-1][:2]
         n_a, n_b = int(counts[top2[0]]), int(counts[top2[1]])
         if n_a + n_b == 0 or binomtest(n_a, n_a + n_b, 0.5).pvalue > alpha:

@@ -6,6 +6,8 @@ Poses file (JSON)::
      "poses": [{"split": "train", "label": "mug", "pose": [[r00, r01, r02, tx], ..., [0, 0, 0, 1]]},
                {"split": "test",  "label": "can", "pose": [[...]]}]}
 
+Poses with ``"split": "validation"`` are optional: when given, they select ``best.pt`` in training
+(otherwise a share of the training poses is held out, ``train.val_fraction``).
 ``pose`` is a 4x4 camera-to-world matrix in OpenCV camera axes (x right, y down, z forward),
 the cloud is in the same world frame.
 """
@@ -23,7 +25,7 @@ from mrcert.data.datasets import PosedCloudData, Split, file_digest
 from mrcert.errors import MrcertError
 from mrcert.scenes.scene import read_point_cloud
 
-SPLITS = ("train", "test")
+SPLITS = ("train", "test", "validation")  # validation poses are optional (model selection)
 
 
 def check_rigid(pose: Any, where: str) -> np.ndarray:
@@ -65,16 +67,17 @@ def read_poses(path: Path) -> tuple[list[str], dict[str, Split]]:
         if not isinstance(e, dict):
             raise MrcertError(f"{where}: must be an object with split, label and pose")
         if e.get("split") not in SPLITS:
-            raise MrcertError(f"{where}: split {e.get('split')!r} is not allowed: train or test")
+            raise MrcertError(f"{where}: split {e.get('split')!r} is not allowed: {', '.join(SPLITS)}")
         if e.get("label") not in classes:
             raise MrcertError(f"{where}: label {e.get('label')!r} is not one of the classes {classes}")
         rows[e["split"]].append((check_rigid(e.get("pose"), where), classes.index(e["label"])))
-    for s in SPLITS:
+    for s in ("train", "test"):
         if not rows[s]:
             raise MrcertError(f"poses file {str(path)!r} has no {s} poses")
     splits = {
         s: Split(np.stack([p for p, _ in r]), np.zeros((len(r), 4)), np.array([c for _, c in r], np.int64))
         for s, r in rows.items()
+        if r
     }
     return list(classes), splits
 
@@ -91,6 +94,9 @@ class CustomData(PosedCloudData):
 
     def split(self, name: str) -> Split:
         return self.splits[name]
+
+    def has_split(self, name: str) -> bool:
+        return name in self.splits
 
     def identity(self) -> dict[str, Any]:
         return {"cloud": file_digest(self.cloud_path), "poses": file_digest(self.poses_path)}

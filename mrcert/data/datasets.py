@@ -136,6 +136,11 @@ class DataBundle(ABC):
     def test(self) -> ImageSet:
         """Clean test images."""
 
+    def validation(self) -> ImageSet | None:
+        """Clean images of the source's validation poses (model selection), or None when it has
+        none; training then holds out a share of the training images (``train.val_fraction``)."""
+        return None
+
     @abstractmethod
     def samples(self, downsampling: tuple[int, float] | None = None, crop: CropBound | None = None) -> SampleSet:
         """Re-renderable test samples, in the order of :meth:`test` (``crop`` overrides ``data.crop``)."""
@@ -150,7 +155,10 @@ class PosedCloudData(DataBundle):
 
     @abstractmethod
     def split(self, name: str) -> Split:
-        """Poses and labels of the ``train`` or ``test`` split."""
+        """Poses and labels of the ``train``, ``test`` or (where :meth:`has_split`) ``validation`` split."""
+
+    def has_split(self, name: str) -> bool:
+        return name in ("train", "test")
 
     @abstractmethod
     def identity(self) -> dict[str, Any]:
@@ -196,6 +204,9 @@ class PosedCloudData(DataBundle):
 
     def test(self) -> ImageSet:
         return self._images("test", None)
+
+    def validation(self) -> ImageSet | None:
+        return self._images("validation", None) if self.has_split("validation") else None
 
     def samples(self, downsampling: tuple[int, float] | None = None, crop: CropBound | None = None) -> SampleSet:
         split = self.split("test")

@@ -90,20 +90,22 @@ def sample_poses(
     ranges: dict[str, tuple[float, float]],
     rng: np.random.Generator,
     *,
-    tests: np.ndarray | None = None,
-    gaps: dict[str, float] | None = None,
+    apart: list[tuple[np.ndarray, dict[str, float]]] = (),
     rule: str = "every",
     max_camera_z: float | None = None,
     target=(0.0, 0.0, 0.0),
     max_rounds: int = 1000,
 ) -> PoseSet:
-    """``n`` poses uniform in ``ranges`` (by rejection: separated from ``tests`` by ``gaps``,
-    camera below ``max_camera_z``). Deterministic for a given generator state."""
+    """``n`` poses uniform in ``ranges`` (by rejection: separated by ``rule`` from each set of
+    held-out poses in ``apart`` by that set's gaps, camera below ``max_camera_z``).
+    Deterministic for a given generator state."""
     kept: list[np.ndarray] = []
     count = 0
     for _ in range(max_rounds):
         batch = np.column_stack([rng.uniform(*ranges[q], size=max(2 * n, 64)) for q in QUANTITIES])
-        ok = separated(batch, tests if tests is not None else np.zeros((0, 4)), gaps or {}, rule)
+        ok = np.ones(len(batch), bool)
+        for others, gaps in apart:
+            ok &= separated(batch, others, gaps, rule)
         if max_camera_z is not None:
             ok &= target[2] + batch[:, 3] * np.sin(np.deg2rad(batch[:, 1])) <= max_camera_z
         kept.append(batch[ok])
@@ -111,8 +113,8 @@ def sample_poses(
         if count >= n:
             return PoseSet(np.concatenate(kept)[:n], tuple(target))
     raise ValueError(
-        f"could not draw {n} poses within {ranges} separated ({rule}) by {gaps} from the test poses; "
-        "widen the ranges or reduce the gaps"
+        f"could not draw {n} poses within {ranges} separated ({rule}) from the held-out poses by "
+        f"{[gaps for _, gaps in apart]}; widen the ranges or reduce the gaps"
     )
 
 

@@ -49,6 +49,9 @@ FAMILIES = {
 }
 
 
+SPLITS = ("test", "train", "validation")  # their index seeds each split's generator
+
+
 def _ranges(train: DictConfig) -> dict[str, tuple[float, float]]:
     return {q: tuple(train[f"{q}_range"]) for q in ("yaw", "pitch", "roll", "radius")}
 
@@ -89,34 +92,47 @@ class SyntheticSource:
     def _target(self) -> tuple[float, float, float]:
         return tuple(float(v) for v in self.data.protocol.target)
 
-    def _test_set(self, label: int) -> PoseSet:
-        p = self.data.protocol
-        if p.test.get("ring", False):
-            return ring_poses(p.test.per_class, (0.0, 360.0), p.test.pitch, p.test.roll, p.test.radius, self._target())
-        rng = np.random.default_rng([self.data.seed, label, 0])
-        return sample_poses(p.test.per_class, _ranges(p.test), rng, target=self._target())
+    def _held_out_set(self, name: str, label: int) -> PoseSet | None:
+        """The ``test`` or ``validation`` poses of class ``label``: a ring (``ring: true``: ``per_class``
+        yaws evenly spread from ``yaw_start``) or drawn uniformly in the split's ranges; None when
+        the protocol has no such split."""
+        spec = self.data.protocol.get(name)
+        if spec is None:
+            return None
+        if spec.get("ring", False):
+            start = float(spec.get("yaw_start", 0.0))
+            return ring_poses(spec.per_class, (start, start + 360.0), spec.pitch, spec.roll, spec.radius, self._target())
+        rng = np.random.default_rng([self.data.seed, label, SPLITS.index(name)])
+        return sample_poses(spec.per_class, _ranges(spec), rng, target=self._target())
 
     def _train_set(self, label: int) -> PoseSet:
+        """Training poses, kept apart (``separation_rule``) from the test poses by ``separation`` and
+        from the validation poses by ``validation.separation``."""
         p = self.data.protocol
-        rng = np.random.default_rng([self.data.seed, label, 1])
-        gaps = OmegaConf.to_container(p.separation)
+        rng = np.random.default_rng([self.data.seed, label, SPLITS.index("train")])
+        apart = [(self._held_out_set("test", label).params, OmegaConf.to_container(p.separation))]
+        validation = self._held_out_set("validation", label)
+        if validation is not None:
+            apart.append((validation.params, OmegaConf.to_container(p.validation.separation)))
         return sample_poses(
             p.train.per_class,
             _ranges(p.train),
             rng,
-            tests=self._test_set(label).params,
-            gaps=gaps,
+            apart=apart,
             rule=str(p.separation_rule),
             max_camera_z=self.family.max_camera_z,
             target=self._target(),
         )
 
+    def has_split(self, name: str) -> bool:
+        return name in ("train", "test") or (name == "validation" and self.data.protocol.get(name) is not None)
+
     def split(self, name: str) -> Split:
         """The ``train`` or ``test`` split: every class's poses, class by class."""
-        sets = [
-            (label, self._test_set(label) if name == "test" else self._train_set(label))
-            for label in range(len(self.classes))
-        ]
+        if not self.has_split(name):
+            raise ValueError(f"{self.data.name} has no {name!r} split")
+        make = self._train_set if name == "train" else lambda label: self._held_out_set(name, label)
+        sets = [(label, make(label)) for label in range(len(self.classes))]
         offset = float(self.data.protocol.get("yaw_offset", 0.0))
         params = np.concatenate([s.params for _, s in sets])
         shifted = params.copy()
@@ -137,6 +153,9 @@ class SyntheticData(PosedCloudData):
 
     def split(self, name: str) -> Split:
         return self.source.split(name)
+
+    def has_split(self, name: str) -> bool:
+        return self.source.has_split(name)
 
     def identity(self) -> dict[str, Any]:
         keep = ("source", "seed", "density", "room_density", "protocol")

@@ -83,6 +83,7 @@ RULES: dict[str, Rule] = {
         f"a non-empty list of axes from {', '.join(AXES)} (or null for all)",
     ),
     "backend": (lambda v: v in ("auto", "numba", "torch"), "one of auto, numba, torch"),
+    "decision": (lambda v: v in ("predict", "vote"), "predict or vote"),
     "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
     "room_density": (_positive, "a finite number > 0 (metres)"),
     "per_class": (_positive_int, "an integer >= 1"),

@@ -23,6 +23,7 @@ class Evaluation:
     name: str = MISSING
     n: int = MISSING
     alpha: float = MISSING
+    decision: str = MISSING
     batch_size: int = MISSING
     skip: int = MISSING
     max: int | None = None

@@ -14,8 +14,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mrcert.reporting import learning_curve
 from mrcert.reporting.cells import Cell
-from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust, sweep_combos
+from mrcert.reporting.plots import save
+from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust
 from mrcert.reporting.writers import as_text, markdown
 
 
@@ -120,13 +122,13 @@ def findings(src: Source, jobs: list[Job]) -> list[str]:
 
 
 def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
-    """Each evaluated model's training record: accuracy on its held-out training poses (what
-    selected ``best.pt``) and on the test images (measured once, after training)."""
+    """Each evaluated model's training record: accuracy on its validation poses (what selected
+    ``best.pt``) and on the test images (measured once, after training)."""
     df = src.index.df.set_index("run_id")
     rows = {}
     for j in jobs:
-        run = str(j.certify.runs[0]["tags.mrcert.train_run"]) if j.certify.filled else None
-        if run is None or run not in df.index or j.variant + (j.axis if j.variant == "augmented" else "") in rows:
+        run = j.certify.runs[0].get("tags.mrcert.train_run") if j.certify.filled else None  # None: an import
+        if not isinstance(run, str) or run not in df.index or j.variant + (j.axis if j.variant == "augmented" else "") in rows:
             continue
         label = "vanilla (every axis)" if j.variant == "vanilla" else f"augmented on {j.axis}"
         rows[j.variant + (j.axis if j.variant == "augmented" else "")] = {
@@ -137,50 +139,39 @@ def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
     return pd.DataFrame(list(rows.values()))
 
 
-def generalization(src: Source, experiment: str = "generalization") -> pd.DataFrame:
-    """The ``generalization`` experiment's train runs: test accuracy by separation rule and
-    training poses per class (empty when it has not run)."""
-    rows = []
-    for combo in sweep_combos(experiment):
-        cell = src.index.cell((f"experiment={experiment}", f"profile={src.profile}", "task=train", *combo))
-        if not cell.filled:
-            continue
-        cfg, run = cell.cfg, cell.runs[0]
-        rows.append(
-            {
-                "separation rule": cfg.data.protocol.separation_rule,
-                "training poses per class": cfg.data.protocol.train.per_class,
-                "model": cfg.model.arch,
-                "validation accuracy": run.get("metrics.best_val_acc", np.nan),
-                "test accuracy": run.get("metrics.test_acc", np.nan),
-            }
+def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
+    """Sentences from the numbers: how well the evaluated base models generalise, and what the
+    learning curve says about the number of training poses under each separation rule."""
+    text = []
+    if len(models):
+        val, test = models["validation accuracy"].astype(float), models["test accuracy"].astype(float)
+        text.append(
+            f"The evaluated base models reach {val.min():.2f} to {val.max():.2f} on the validation poses and "
+            f"{test.min():.2f} to {test.max():.2f} on the test images."
         )
-    return pd.DataFrame(rows)
-
-
-def why(models: pd.DataFrame, general: pd.DataFrame) -> str:
-    """One sentence from the numbers: how well the evaluated base models generalise, and how
-    much the separation rule moves the generalization experiment's test accuracy."""
-    val, test = models["validation accuracy"].astype(float), models["test accuracy"].astype(float)
-    most = general["training poses per class"].max()
-    at = general[general["training poses per class"] == most].set_index("separation rule")["test accuracy"]
-    text = (
-        f"In short: the evaluated base models reach {val.min():.2f} to {val.max():.2f} on held-out training poses "
-        f"but only {test.min():.2f} to {test.max():.2f} on the test images."
-    )
-    if {"every", "any"} <= set(at.index):
-        every, any_ = float(at["every"]), float(at["any"])
+    med = curve.groupby(["separation rule", "training poses per class"])["test accuracy"].median()
+    if "every" in med.index.get_level_values(0) and len(med["every"]) >= 2:
+        every = med["every"]
+        fewest, most = every.index.min(), every.index.max()
+        rise = every[most] - every[fewest]
+        sentence = (
+            f"Under `every` the small CNN's median test accuracy is {every[fewest]:.2f} with {fewest} training poses "
+            f"per class and {every[most]:.2f} with {most}"
+        )
+        if "any" in med.index.get_level_values(0) and most in med["any"].index:
+            sentence += f" (under `any`: {med['any'][most]:.2f} with {most})"
         verdict = (
-            "the distance of the test views from every training view, not the certification, sets the level of "
-            "these numbers"
-            if any_ - every >= 0.1
-            else "the separation rule alone does not explain the gap"
+            "more training poses are what it takes" if rise >= 0.1 else "the number of training poses alone does not"
         )
-        text += (
-            f" With {most} training poses per class the small CNN's test accuracy is {every:.2f} under `every` and "
-            f"{any_:.2f} under `any`: {verdict}."
-        )
-    return text
+        text.append(f"{sentence}: {verdict}.")
+    return " ".join(text)
+
+
+def _validation(cfg) -> str:
+    spec = cfg.data.protocol.get("validation")
+    if spec is None:
+        return f"{int(cfg.train.val_fraction * 100)}% of the training poses held out"
+    return f"{spec.per_class} validation poses per class (docs/method.md §3)"
 
 
 def _share(skip: int) -> str:
@@ -255,27 +246,36 @@ def write_page(
     if first is not None:
         lines += [
             f"Setup: {first.data.name} ({first.profile.name} profile: {first.data.num_classes} classes, "
-            f"{first.data.protocol.train.per_class} training poses per class, "
-            f"{int(first.train.val_fraction * 100)}% of them held out for model selection; "
+            f"{first.data.protocol.train.per_class} training poses per class, model selection on "
+            f"{_validation(first)}; "
             f"{first.data.protocol.test.per_class * first.data.num_classes} test images), {first.model.arch} from "
-            f"scratch, {first.train.epochs} epochs at lr {first.train.lr}. Certification: "
-            f"{'sequential (anytime-valid) ' if first.task.get('sequential') else ''}CERTIFY at r = sigma, "
-            f"n0 = {first.task.n0}, n up to {first.task.n}, alpha = {first.task.alpha}; smoothed benign accuracy: "
-            f"PREDICT with n = {jobs[0].smooth.cfg.task.n}; attack: 5 uniform perturbations within +-r (PREDICT with "
-            f"n = {jobs[0].attack.cfg.task.n} at each), on "
-            f"{_share(int(jobs[0].attack.cfg.task.skip))}. The paper's values are in parentheses "
-            "(MetaRoom, ResNet-18, 120 test images).",
+            f"scratch, {first.train.epochs} epochs at lr {first.train.lr}. Certified accuracy: fixed-n CERTIFY at "
+            f"r = sigma (the paper's procedure), n0 = {first.task.n0}, n = {first.task.n}, alpha = {first.task.alpha}; "
+            f"the sequential columns: the anytime-valid sequential CERTIFY (n up to {first.task.n}, looks of "
+            f"{first.task.look}), an extra procedure the paper does not have. Smoothed benign accuracy: PREDICT with "
+            f"n = {jobs[0].smooth.cfg.task.n}; attack: 5 uniform perturbations within +-r (PREDICT with "
+            f"n = {jobs[0].attack.cfg.task.n} at each). Every column covers "
+            f"{_share(int(jobs[0].attack.cfg.task.skip))}, the same images in each. The paper's values are in "
+            "parentheses (MetaRoom, ResNet-18, 120 test images).",
             "",
         ]
-    lines += ["## Table 3, ours (paper)", "", markdown(as_text(table)), ""]
-    lines += ["## Certified accuracy against radius", ""]
-    if first is not None and first.task.get("sequential"):
+    filled = any(c.filled for j in jobs for c in (j.certify, j.smooth, j.attack))
+    lines += ["## Table 3, ours (paper)", ""]
+    if filled:
+        lines += [markdown(as_text(table)), ""]
+    else:
         lines += [
-            "Sequential CERTIFY stops sampling an image as soon as its confidence sequence decides r = sigma, so "
-            "each radius is the bound it had then: the value at r = sigma is what the run certifies; elsewhere the "
-            "curves lie below what fixed-n CERTIFY would draw, most of all beyond r = sigma.",
+            f"Not run yet: no finished certify, smooth or attack run of experiment `{experiment}` in this store "
+            "(`make results` runs its stages; each finished stage is kept).",
             "",
         ]
+    lines += ["## Certified accuracy against radius", ""]
+    lines += [
+        "Each curve is the exact step function of a fixed-n CERTIFY log (n = 1000 for every image, so the radius "
+        "of an image does not depend on the radius asked for); sequential CERTIFY stops once r = sigma is decided "
+        "and draws no curve here.",
+        "",
+    ]
     lines += [f"![certified accuracy against radius]({picture.name})", ""]
     lines += ["## The paper's findings, checked", ""]
     lines += [f"{i}. {text}" for i, text in enumerate(findings(src, jobs), 1)] + [""]
@@ -285,8 +285,8 @@ def write_page(
             "## The base models",
             "",
             "Certified accuracy can be no higher than what the base model gets right under the smoothing noise, "
-            "and the base models' own test accuracy bounds that: each model's accuracy on its held-out *training* "
-            "poses (which selected `best.pt`) and on the test images.",
+            "and the base models' own test accuracy bounds that: each model's accuracy on its validation poses "
+            "(which selected `best.pt`) and on the test images (measured once).",
             "",
             markdown(as_text(models)),
             "",
@@ -300,22 +300,28 @@ def write_page(
             f"![test views and the nearest training views]({views[0].name})",
             "",
         ]
-    general = generalization(src)
-    if len(general):
+    curve = learning_curve.runs(src)
+    if len(curve):
+        plot = page.with_name(f"{page.stem}_learning_curve.png")
+        save(learning_curve.figure(curve, learning_curve.histories(curve)), [plot])
         lines += [
-            "## Why: generalisation from the training poses to the test poses",
+            "## Learning curve: what it takes to generalise to the test views",
             "",
-            "`mrcert -m experiment=generalization task=train`: a small vanilla CNN trained with each pose-separation "
-            "rule and number of training poses per class, everything else as above. `every` keeps each angle of a "
-            "training pose at least 15 degrees from that angle of every test pose (the paper's reading: no training "
-            "pose has a roll within 15 degrees of the test poses' 0, a pitch within 15 of their 10, or a yaw within 15 "
-            "of theirs); `any` only keeps training poses out of the box around each test pose.",
+            f"`make learning-curve` (`mrcert -m experiment={learning_curve.EXPERIMENT} task=train`): a small vanilla "
+            "CNN trained with each number of training poses per class and each pose-separation rule, over seeds, "
+            "everything else as above. `every` keeps each angle of a training pose at least 15 degrees from that "
+            "angle of every test pose (the paper's rule: no training pose has a roll within 15 degrees of the test "
+            "poses' 0, a pitch within 15 of their 10, or a yaw within 15 of theirs); `any` only keeps training poses "
+            "out of the box around each test pose. Validation and test accuracy of the selected `best.pt`; the "
+            "test accuracy after every epoch is recorded for this figure only and selects nothing.",
             "",
-            markdown(as_text(general)),
+            markdown(as_text(learning_curve.table(curve))),
+            "",
+            f"![learning curve]({plot.name})",
+            "",
+            why(models, curve),
             "",
         ]
-        if len(models):
-            lines += [why(models, general), ""]
     lines += [
         "## Time per stage",
         "",

@@ -93,7 +93,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             for k, m in enumerate(motions):
                 counts = ev.smoothed.sample_counts(render, int(t.n), image_generator(cfg.seed, i, "predict", k), m)
                 votes.append(counts[sample.label])
-                decision = ev.smoothed.decide(counts, float(t.alpha))
+                decision = ev.smoothed.decide(counts, float(t.alpha), str(t.decision))
                 if decision != sample.label:
                     failure = "abstain" if decision == ABSTAIN else "wrong"
                     row |= {

@@ -23,7 +23,9 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
     def predict_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
-        pred = ev.smoothed.predict(ev.render(sample), int(t.n), float(t.alpha), image_generator(cfg.seed, i))
+        pred = ev.smoothed.predict(
+            ev.render(sample), int(t.n), float(t.alpha), image_generator(cfg.seed, i), rule=str(t.decision)
+        )
         return {
             "label": sample.label,
             "predict": pred,

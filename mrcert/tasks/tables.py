@@ -34,11 +34,12 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         raise MrcertError(f"task.source={t.source!r} is not allowed: {' or '.join(SOURCES)}")
     configure(cfg.tracking)
     experiment_id = ensure_experiment(cfg.tracking)
+    named = named_data()
     src = tables.Source(
         RunIndex.gather(cfg.tracking.experiment),
         profile=str(t.profile),
         experiment=t.experiment,
-        overrides=tuple(t.overrides),
+        overrides=tuple(t.overrides) + ((f"data={named}",) if named else ()),
         archs=tuple(t.archs) if t.archs else None,
         axes=tuple(t.axes) if t.axes else None,
         certify_task=SOURCES[t.source],
@@ -91,7 +92,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if t.page:
         from mrcert.reporting.results_page import write_page
 
-        table = tables.certified_table(src, show_paper=True, name="page")
+        table = tables.certified_table(src, show_paper=True, name="page", sequential=True)
         command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
         page, experiment = Path(t.page), str(t.experiment or "table3")
         cells = [c for _, c in src.rows(experiment, tables.SMOOTHED_BENIGN)]
@@ -103,6 +104,12 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     shown = built[t.print][0]
     print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
     print(markdown(as_text(shown)))
+    from mrcert.reporting.results_page import base_models, jobs_of
+
+    models = base_models(src, jobs_of(src, src.experiment_for("table3"), 5))
+    if len(models):
+        print("\nTheir base classifiers (validation accuracy selected best.pt; test accuracy measured once):\n")
+        print(markdown(as_text(models)))
     sources = src.sources(t.print)
     gaps = sources[sources["note"] != ""] if len(sources) else sources
     if len(gaps):
@@ -114,6 +121,18 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         f"MLflow: make ui  (or: mlflow ui --backend-store-uri {cfg.tracking.uri})"
     )
     return metrics | {"tables": str(out.resolve())}
+
+
+def named_data() -> str | None:
+    """The data set named on the command line (``data=metaroom``), if any: the tables are then
+    built for it instead of each experiment's own (e.g. Table 3 of the released MetaRoom from
+    imported logs)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None
+    named = [o.split("=", 1)[1] for o in HydraConfig.get().overrides.task if o.split("=", 1)[0] in ("data", "+data")]
+    return named[-1] if named else None
 
 
 def nearest_views(data: DictConfig, path: Path, classes: tuple[int, ...] = (0, 5, 10)) -> tuple[Path, str] | None:

@@ -1,10 +1,14 @@
 """``task=train``: vanilla and motion-augmented base classifiers with the recipe in ``train.*``.
 
 SGD (momentum, weight decay) with StepLR, seeded model initialisation and a batch order
-drawn per epoch from ``(seed, epoch)``. Model selection uses a validation split of the
-*training* poses (``train.val_fraction`` per class, :mod:`mrcert.data.holdout`): ``best.pt``
-is the epoch with the highest ``val_acc``, so the test poses stay unseen until evaluation;
-the test accuracy of ``best.pt`` is measured once, at the end (``test_acc``). Each epoch ends
+drawn per epoch from ``(seed, epoch)``. Model selection uses the data source's validation
+poses (synthetic MetaRoom: rings as far from the training poses in yaw and roll as the test
+poses, docs/method.md §3), or, for a source without them, a held-out share of the training
+poses (``train.val_fraction`` per class, :mod:`mrcert.data.holdout`): ``best.pt`` is the epoch
+with the highest ``val_acc``, ties going to the lower ``val_loss`` (then the earlier epoch).
+The test images never select anything: the test accuracy of ``best.pt`` is measured once, at
+the end (``test_acc``); each epoch's test accuracy is recorded too (``epoch_test_acc``) for the
+learning curve, and nothing reads it back. Each epoch ends
 with an atomic ``last.pt`` (model, optimiser, scheduler, epoch, best), so a run restarted with
 ``task.resume=true`` continues in the same MLflow run and ends with the same weights as an
 uninterrupted one. ``best.pt`` and ``last.pt`` are logged as artifacts under ``checkpoints/``.
@@ -57,13 +61,26 @@ def to_device(images: torch.Tensor, device: torch.device) -> torch.Tensor:
 
 
 @torch.inference_mode()
-def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int) -> float:
+def evaluate(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int) -> tuple[float, float]:
+    """(accuracy, mean cross-entropy) of ``model`` on the images."""
     model.eval()
-    correct = 0
+    correct, loss = 0, 0.0
     for s in range(0, len(labels), batch):
         x = to_device(images[s : s + batch], torch.device(device))
-        correct += int((model(x).argmax(1).cpu() == labels[s : s + batch]).sum())
-    return correct / max(len(labels), 1)
+        logits = model(x).float().cpu()
+        correct += int((logits.argmax(1) == labels[s : s + batch]).sum())
+        loss += float(nn.functional.cross_entropy(logits, labels[s : s + batch], reduction="sum"))
+    return correct / max(len(labels), 1), loss / max(len(labels), 1)
+
+
+def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int) -> float:
+    return evaluate(model, images, labels, device, batch)[0]
+
+
+def better(val: tuple[float, float], best: tuple[float, float] | None) -> bool:
+    """Whether (accuracy, loss) on the validation images beats ``best``: higher accuracy, or equal
+    accuracy and lower loss (a saturated accuracy still ranks epochs)."""
+    return best is None or val[0] > best[0] or (val[0] == best[0] and val[1] < best[1])
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -78,23 +95,32 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     all_x, all_y = as_tensors(bundle.train(augment))
     inputs: set[str] = set()
     log_inputs(ctx, bundle, "training", inputs)
-    keep, held = validation_split(all_y.numpy(), float(r.val_fraction), int(cfg.seed))
-    train_x, train_y = all_x[keep], all_y[keep]
-    val_x, val_y = all_x[held], all_y[held]
-    ctx.tracker.log_metrics({"train_images": len(keep), "val_images": len(held)})
+    validation = bundle.validation()
+    if validation is not None:  # the source's validation poses: every training image trains
+        held = np.zeros(0, np.int64)
+        train_x, train_y = all_x, all_y
+        val_x, val_y = as_tensors(validation)
+        log_inputs(ctx, bundle, "validation", inputs)
+    else:  # a share of the training poses, held out
+        keep, held = validation_split(all_y.numpy(), float(r.val_fraction), int(cfg.seed))
+        train_x, train_y = all_x[keep], all_y[keep]
+        val_x, val_y = all_x[held], all_y[held]
+    test_x, test_y = as_tensors(bundle.test())
+    log_inputs(ctx, bundle, "test", inputs)
+    ctx.tracker.log_metrics({"train_images": len(train_y), "val_images": len(val_y)})
 
     torch.manual_seed(int(cfg.seed))
     model = build_model(cfg.model, len(bundle.classes)).to(device)
     amp = bool(r.get("amp", False)) and device.type == "cuda"
     if device.type == "cuda":  # fastest convolution algorithms for these fixed image sizes
         torch.backends.cudnn.benchmark = True
-        model = model.to(memory_format=torch.channels_last)
+    model = model.to(memory_format=torch.channels_last)  # faster convolutions on CPU and GPU alike
     scaler = torch.amp.GradScaler("cuda", enabled=amp)
     optimizer = torch.optim.SGD(model.parameters(), lr=r.lr, momentum=r.momentum, weight_decay=r.weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=r.step_size, gamma=r.gamma)
     loss_fn = nn.CrossEntropyLoss()
     last_path, best_path = ctx.output_dir / checkpoints.LAST, ctx.output_dir / checkpoints.BEST
-    start, best_acc = 0, -1.0
+    start, best = 0, None
     if ctx.tracker.resumed and last_path.is_file():
         state = torch.load(last_path, map_location="cpu", weights_only=True)
         model.load_state_dict(state["model"])
@@ -102,7 +128,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         scheduler.load_state_dict(state["scheduler"])
         if "scaler" in state:
             scaler.load_state_dict(state["scaler"])
-        start, best_acc = state["epoch"] + 1, state["best_acc"]
+        start, best = state["epoch"] + 1, state["best"]
 
     meta = {
         "arch": cfg.model.arch,
@@ -111,7 +137,11 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         "variant": cfg.model.variant,
         "axis": cfg.motion.axis,
         "model_config": OmegaConf.to_container(cfg.model.net, resolve=True),
-        "validation": {"fraction": float(r.val_fraction), "indices": held.tolist()},
+        "validation": (
+            {"source": "poses", "images": len(val_y)}
+            if validation is not None
+            else {"source": "held-out training poses", "fraction": float(r.val_fraction), "indices": held.tolist()}
+        ),
     }
     history: dict[str, float] = {}
     for epoch in range(start, int(r.epochs)):
@@ -140,15 +170,16 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "lr": lr,
             "epoch_seconds": time.perf_counter() - began,
         }
-        # With no validation split (train.val_fraction=0) every epoch replaces best.pt: the last is kept.
-        val_acc = accuracy(model, val_x, val_y, device, t.eval_batch_size) if len(held) else float("nan")
-        if len(held):
-            history["val_acc"] = val_acc
+        # With no validation images (train.val_fraction=0) every epoch replaces best.pt: the last is kept.
+        val = evaluate(model, val_x, val_y, device, t.eval_batch_size) if len(val_y) else None
+        if val is not None:
+            history["val_acc"], history["val_loss"] = val
+        history["epoch_test_acc"] = accuracy(model, test_x, test_y, device, t.eval_batch_size)  # recorded only
         ctx.tracker.log_metrics(history, step=epoch)
         weights = {k: v.cpu() for k, v in model.state_dict().items()}
-        if not len(held) or val_acc > best_acc:
-            best_acc = val_acc
-            checkpoints.save(meta | {"model": weights, "epoch": epoch, "val_acc": val_acc}, best_path)
+        if val is None or better(val, best):
+            best = val
+            checkpoints.save(meta | {"model": weights, "epoch": epoch, "val_acc": val[0] if val else None}, best_path)
         checkpoints.save(
             meta
             | {
@@ -157,22 +188,23 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
                 "scheduler": scheduler.state_dict(),
                 "scaler": scaler.state_dict(),
                 "epoch": epoch,
-                "best_acc": best_acc,
+                "best": best,
             },
             last_path,
         )
         log.info(
             f"epoch {epoch + 1}/{r.epochs}: loss {history['train_loss']:.4f} "
-            f"train acc {history['train_acc']:.3f} val acc {val_acc:.3f} ({len(held)} held-out training images)"
+            f"train acc {history['train_acc']:.3f} val acc {history.get('val_acc', float('nan')):.3f} "
+            f"({len(val_y)} validation images)"
         )
     if not last_path.is_file():
         raise MrcertError(f"train.epochs={r.epochs} trained nothing")
     # The test images, once, for the record: the selected model's accuracy on them.
-    model.load_state_dict(torch.load(best_path, map_location="cpu", weights_only=True)["model"])
-    test_x, test_y = as_tensors(bundle.test())
-    log_inputs(ctx, bundle, "test", inputs)
+    chosen = torch.load(best_path, map_location="cpu", weights_only=True)
+    model.load_state_dict(chosen["model"])
     test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size)
-    summary = {"test_acc": test_acc} | ({"best_val_acc": best_acc} if len(held) else {})
+    summary = {"test_acc": test_acc, "best_epoch": chosen["epoch"] + 1}
+    summary |= {"best_val_acc": best[0], "best_val_loss": best[1]} if best is not None else {}
     ctx.tracker.log_metrics(summary)
     ctx.tracker.log_artifact(best_path, checkpoints.ARTIFACT_DIR)
     ctx.tracker.log_artifact(last_path, checkpoints.ARTIFACT_DIR)

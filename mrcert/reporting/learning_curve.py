@@ -1,0 +1,112 @@
+"""The learning curve: what it takes for a base classifier to generalise from the training
+poses to the test views (``experiment=learning_curve``, train runs only).
+
+One row per finished train run of the experiment's sweep (separation rule, training poses per
+class, seed); the table gives the median over seeds of the selected model's validation and test
+accuracy, the figure the test accuracy against training poses per class and, per epoch, the
+validation and test accuracy each run recorded (``val_acc``, ``epoch_test_acc``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from mrcert.reporting.tables import Source, sweep_combos
+
+EXPERIMENT = "learning_curve"
+
+
+def runs(src: Source, experiment: str = EXPERIMENT) -> pd.DataFrame:
+    """The experiment's finished train runs, one row each (empty when none has run); the source's
+    overrides apply to every job except the keys the sweep sets."""
+    rows = []
+    for combo in sweep_combos(experiment):
+        swept = {c.split("=", 1)[0] for c in combo}
+        extra = tuple(o for o in src.overrides if o.split("=", 1)[0] not in swept)
+        cell = src.index.cell((f"experiment={experiment}", f"profile={src.profile}", "task=train", *combo, *extra))
+        if not cell.filled:
+            continue
+        cfg, run = cell.cfg, cell.runs[0]
+        rows.append(
+            {
+                "separation rule": str(cfg.data.protocol.separation_rule),
+                "training poses per class": int(cfg.data.protocol.train.per_class),
+                "seed": int(cfg.seed),
+                "model": str(cfg.model.arch),
+                "epochs": int(cfg.train.epochs),
+                "best epoch": run.get("metrics.best_epoch", np.nan),
+                "validation accuracy": run.get("metrics.best_val_acc", np.nan),
+                "test accuracy": run.get("metrics.test_acc", np.nan),
+                "run_id": str(run["run_id"]),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def table(df: pd.DataFrame) -> pd.DataFrame:
+    """Median over seeds (and the range of the test accuracy) per rule, model and training poses."""
+    keys = ["separation rule", "model", "training poses per class"]
+    g = df.groupby(keys, sort=True)
+    out = pd.DataFrame(
+        {
+            "seeds": g["seed"].count(),
+            "validation accuracy (median)": g["validation accuracy"].median().round(3),
+            "test accuracy (median)": g["test accuracy"].median().round(3),
+            "test accuracy (min-max)": g["test accuracy"].agg(lambda s: f"{s.min():.3f}-{s.max():.3f}"),
+        }
+    ).reset_index()
+    return out.sort_values(keys, key=lambda c: c.map({"every": 0, "any": 1}) if c.name == keys[0] else c)
+
+
+def histories(df: pd.DataFrame, metrics=("val_acc", "epoch_test_acc")) -> dict[str, dict[str, np.ndarray]]:
+    """Per run id, per metric: the value after each epoch (from MLflow's metric history)."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for run_id in df.get("run_id", []):
+        out[run_id] = {}
+        for m in metrics:
+            hist = sorted(client.get_metric_history(run_id, m), key=lambda h: h.step)
+            out[run_id][m] = np.array([h.value for h in hist])
+    return out
+
+
+def figure(df: pd.DataFrame, hist: dict[str, dict[str, np.ndarray]]):
+    """Left: test accuracy against training poses per class (median over seeds, range as bars),
+    one line per rule. Right: validation and test accuracy after each epoch under `every`, one
+    pair of lines per number of training poses (median over seeds)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for rule, group in df.groupby("separation rule"):
+        g = group.groupby("training poses per class")["test accuracy"]
+        x, med = np.array(list(g.groups)), g.median().to_numpy()
+        err = np.vstack([med - g.min().to_numpy(), g.max().to_numpy() - med])
+        left.errorbar(x, med, yerr=err, marker="o", capsize=3, label=f"test, separation `{rule}`")
+        v = group.groupby("training poses per class")["validation accuracy"].median()
+        left.plot(v.index, v.to_numpy(), ls=":", marker=".", label=f"validation, `{rule}`")
+    left.set(xlabel="training poses per class", ylabel="accuracy of best.pt", ylim=(0, 1.02), xscale="log")
+    left.set_xticks(sorted(df["training poses per class"].unique()))
+    left.set_xticklabels([str(v) for v in sorted(df["training poses per class"].unique())])
+    every = df[df["separation rule"] == "every"]
+    for i, (n, group) in enumerate(every.groupby("training poses per class")):
+        color = f"C{i}"
+        for metric, style, name in (("epoch_test_acc", "-", "test"), ("val_acc", ":", "validation")):
+            curves = [hist[r][metric] for r in group["run_id"] if len(hist.get(r, {}).get(metric, []))]
+            if not curves:
+                continue
+            length = min(len(c) for c in curves)
+            med = np.median(np.stack([c[:length] for c in curves]), axis=0)
+            right.plot(np.arange(1, length + 1), med, style, color=color, label=f"{n} poses, {name}")
+    right.set(xlabel="epoch", ylabel="accuracy (median over seeds)", ylim=(0, 1.02), title="separation `every`")
+    for ax in (left, right):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("Learning curve of the small CNN (vanilla) on the synthetic MetaRoom")
+    fig.tight_layout()
+    return fig
