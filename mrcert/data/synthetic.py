@@ -101,7 +101,9 @@ class SyntheticSource:
             return None
         if spec.get("ring", False):
             start = float(spec.get("yaw_start", 0.0))
-            return ring_poses(spec.per_class, (start, start + 360.0), spec.pitch, spec.roll, spec.radius, self._target())
+            return ring_poses(
+                spec.per_class, (start, start + 360.0), spec.pitch, spec.roll, spec.radius, self._target()
+            )
         rng = np.random.default_rng([self.data.seed, label, SPLITS.index(name)])
         return sample_poses(spec.per_class, _ranges(spec), rng, target=self._target())
 

@@ -83,14 +83,16 @@ def figure(df: pd.DataFrame, hist: dict[str, dict[str, np.ndarray]]):
     import matplotlib.pyplot as plt
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
-    for rule, group in df.groupby("separation rule"):
+    for k, (rule, group) in enumerate(df.groupby("separation rule")):
         g = group.groupby("training poses per class")["test accuracy"]
         x, med = np.array(list(g.groups)), g.median().to_numpy()
         err = np.vstack([med - g.min().to_numpy(), g.max().to_numpy() - med])
-        left.errorbar(x, med, yerr=err, marker="o", capsize=3, label=f"test, separation `{rule}`")
+        color = f"C{k}"
+        left.errorbar(x, med, yerr=err, marker="o", capsize=3, color=color, label=f"test, separation `{rule}`")
         v = group.groupby("training poses per class")["validation accuracy"].median()
-        left.plot(v.index, v.to_numpy(), ls=":", marker=".", label=f"validation, `{rule}`")
+        left.plot(v.index, v.to_numpy(), ls=":", marker=".", color=color, label=f"validation, `{rule}`")
     left.set(xlabel="training poses per class", ylabel="accuracy of best.pt", ylim=(0, 1.02), xscale="log")
+    left.minorticks_off()
     left.set_xticks(sorted(df["training poses per class"].unique()))
     left.set_xticklabels([str(v) for v in sorted(df["training poses per class"].unique())])
     every = df[df["separation rule"] == "every"]

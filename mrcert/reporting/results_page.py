@@ -128,7 +128,11 @@ def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
     rows = {}
     for j in jobs:
         run = j.certify.runs[0].get("tags.mrcert.train_run") if j.certify.filled else None  # None: an import
-        if not isinstance(run, str) or run not in df.index or j.variant + (j.axis if j.variant == "augmented" else "") in rows:
+        if (
+            not isinstance(run, str)
+            or run not in df.index
+            or j.variant + (j.axis if j.variant == "augmented" else "") in rows
+        ):
             continue
         label = "vanilla (every axis)" if j.variant == "vanilla" else f"augmented on {j.axis}"
         rows[j.variant + (j.axis if j.variant == "augmented" else "")] = {
@@ -137,6 +141,9 @@ def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
             "test accuracy": df.loc[run].get("metrics.test_acc", np.nan),
         }
     return pd.DataFrame(list(rows.values()))
+
+
+NORMAL = 0.858  # the lowest benign accuracy of the paper's base models on the test views (its Table 1)
 
 
 def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
@@ -150,19 +157,26 @@ def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
             f"{test.min():.2f} to {test.max():.2f} on the test images."
         )
     med = curve.groupby(["separation rule", "training poses per class"])["test accuracy"].median()
-    if "every" in med.index.get_level_values(0) and len(med["every"]) >= 2:
+    rules = set(med.index.get_level_values(0))
+    if "every" in rules and len(med["every"]) >= 2:
         every = med["every"]
         fewest, most = every.index.min(), every.index.max()
-        rise = every[most] - every[fewest]
         sentence = (
             f"Under `every` the small CNN's median test accuracy is {every[fewest]:.2f} with {fewest} training poses "
             f"per class and {every[most]:.2f} with {most}"
         )
-        if "any" in med.index.get_level_values(0) and most in med["any"].index:
-            sentence += f" (under `any`: {med['any'][most]:.2f} with {most})"
-        verdict = (
-            "more training poses are what it takes" if rise >= 0.1 else "the number of training poses alone does not"
-        )
+        if "any" in rules:
+            top = med["any"].index.max()
+            sentence += f" (under `any`: {med['any'][top]:.2f} with {top})"
+        if every[most] >= NORMAL:
+            verdict = "more training poses are what it takes"
+        elif every[most] - every[fewest] >= 0.1:
+            verdict = (
+                f"more training poses help, but with {most} per class the base classifier is still far from performing "
+                f"normally on the test views (the paper's base models: {NORMAL:.2f} and more)"
+            )
+        else:
+            verdict = "the number of training poses alone does not move it"
         text.append(f"{sentence}: {verdict}.")
     return " ".join(text)
 
@@ -277,8 +291,9 @@ def write_page(
         "",
     ]
     lines += [f"![certified accuracy against radius]({picture.name})", ""]
-    lines += ["## The paper's findings, checked", ""]
-    lines += [f"{i}. {text}" for i, text in enumerate(findings(src, jobs), 1)] + [""]
+    if filled:
+        lines += ["## The paper's findings, checked", ""]
+        lines += [f"{i}. {text}" for i, text in enumerate(findings(src, jobs), 1)] + [""]
     models = base_models(src, jobs)
     if len(models):
         lines += [
@@ -322,15 +337,16 @@ def write_page(
             why(models, curve),
             "",
         ]
-    lines += [
-        "## Time per stage",
-        "",
-        "Wall-clock from each run's start to its end (a run that was interrupted and resumed also counts the time "
-        "it was down); seconds per image from the per-image logs.",
-        "",
-        markdown(times.astype(str)),
-        "",
-    ]
+    if filled:
+        lines += [
+            "## Time per stage",
+            "",
+            "Wall-clock from each run's start to its end (a run that was interrupted and resumed also counts the time "
+            "it was down); seconds per image from the per-image logs.",
+            "",
+            markdown(times.astype(str)),
+            "",
+        ]
     lines += [f"Machine: {'; '.join(machines) or 'unknown'}.", ""]
     lines += [
         "## Where the numbers come from",
