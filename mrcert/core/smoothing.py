@@ -25,8 +25,9 @@ from mrcert.core.geometry import axis_index, compose
 from mrcert.errors import MrcertError
 
 ABSTAIN = -1
-DECISIONS = ("predict", "vote")  # how a smoothed prediction is decided from its votes (SmoothedClassifier.decide)
 """The smoothed classifier's answer when it cannot decide at the requested confidence."""
+DECISIONS = ("predict", "vote")
+"""How a smoothed prediction is decided from its votes (:meth:`SmoothedClassifier.decide`)."""
 
 
 @dataclass(frozen=True)

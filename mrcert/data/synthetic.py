@@ -130,7 +130,7 @@ class SyntheticSource:
         return name in ("train", "test") or (name == "validation" and self.data.protocol.get(name) is not None)
 
     def split(self, name: str) -> Split:
-        """The ``train`` or ``test`` split: every class's poses, class by class."""
+        """The ``train``, ``test`` or ``validation`` split: every class's poses, class by class."""
         if not self.has_split(name):
             raise ValueError(f"{self.data.name} has no {name!r} split")
         make = self._train_set if name == "train" else lambda label: self._held_out_set(name, label)

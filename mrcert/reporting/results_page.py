@@ -128,14 +128,11 @@ def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
     rows = {}
     for j in jobs:
         run = j.certify.runs[0].get("tags.mrcert.train_run") if j.certify.filled else None  # None: an import
-        if (
-            not isinstance(run, str)
-            or run not in df.index
-            or j.variant + (j.axis if j.variant == "augmented" else "") in rows
-        ):
+        key = j.variant + (j.axis if j.variant == "augmented" else "")
+        if not isinstance(run, str) or run not in df.index or key in rows:
             continue
         label = "vanilla (every axis)" if j.variant == "vanilla" else f"augmented on {j.axis}"
-        rows[j.variant + (j.axis if j.variant == "augmented" else "")] = {
+        rows[key] = {
             "model": f"{j.arch} {label}",
             "validation accuracy": df.loc[run].get("metrics.best_val_acc", np.nan),
             "test accuracy": df.loc[run].get("metrics.test_acc", np.nan),

@@ -21,6 +21,7 @@ from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.plots import save
+from mrcert.reporting.results_page import base_models, jobs_of, write_page
 from mrcert.reporting.writers import as_text, markdown, write
 
 SOURCES = {"runs": "certify", "import": "import"}
@@ -90,8 +91,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     stem = out / "certified_accuracy_vs_radius"
     figure, _ = save(fig, [stem.with_suffix(".png"), stem.with_suffix(".pdf")])
     if t.page:
-        from mrcert.reporting.results_page import write_page
-
         table = tables.certified_table(src, show_paper=True, name="page", sequential=True)
         command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
         page, experiment = Path(t.page), str(t.experiment or "table3")
@@ -104,8 +103,6 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     shown = built[t.print][0]
     print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
     print(markdown(as_text(shown)))
-    from mrcert.reporting.results_page import base_models, jobs_of
-
     models = base_models(src, jobs_of(src, src.experiment_for("table3"), 5))
     if len(models):
         print("\nTheir base classifiers (validation accuracy selected best.pt; test accuracy measured once):\n")

@@ -2,8 +2,8 @@
 
 SGD (momentum, weight decay) with StepLR, seeded model initialisation and a batch order
 drawn per epoch from ``(seed, epoch)``. Model selection uses the data source's validation
-poses (synthetic MetaRoom: rings as far from the training poses in yaw and roll as the test
-poses, docs/method.md §3), or, for a source without them, a held-out share of the training
+poses (synthetic MetaRoom: the test ring turned by 30 degrees, as far from the training poses
+in pitch and roll as the test poses, docs/method.md §3), or, for a source without them, a held-out share of the training
 poses (``train.val_fraction`` per class, :mod:`mrcert.data.holdout`): ``best.pt`` is the epoch
 with the highest ``val_acc``, ties going to the lower ``val_loss`` (then the earlier epoch).
 The test images never select anything: the test accuracy of ``best.pt`` is measured once, at
@@ -97,14 +97,15 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     log_inputs(ctx, bundle, "training", inputs)
     validation = bundle.validation()
     if validation is not None:  # the source's validation poses: every training image trains
-        held = np.zeros(0, np.int64)
         train_x, train_y = all_x, all_y
         val_x, val_y = as_tensors(validation)
         log_inputs(ctx, bundle, "validation", inputs)
+        selection = {"source": "poses", "images": len(val_y)}
     else:  # a share of the training poses, held out
         keep, held = validation_split(all_y.numpy(), float(r.val_fraction), int(cfg.seed))
         train_x, train_y = all_x[keep], all_y[keep]
         val_x, val_y = all_x[held], all_y[held]
+        selection = {"source": "held-out training poses", "fraction": float(r.val_fraction), "indices": held.tolist()}
     test_x, test_y = as_tensors(bundle.test())
     log_inputs(ctx, bundle, "test", inputs)
     ctx.tracker.log_metrics({"train_images": len(train_y), "val_images": len(val_y)})
@@ -137,11 +138,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         "variant": cfg.model.variant,
         "axis": cfg.motion.axis,
         "model_config": OmegaConf.to_container(cfg.model.net, resolve=True),
-        "validation": (
-            {"source": "poses", "images": len(val_y)}
-            if validation is not None
-            else {"source": "held-out training poses", "fraction": float(r.val_fraction), "indices": held.tolist()}
-        ),
+        "validation": selection,
     }
     history: dict[str, float] = {}
     for epoch in range(start, int(r.epochs)):
