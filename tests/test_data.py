@@ -241,6 +241,35 @@ def write_release(root, classes=("apple", "bowl")):
     return records
 
 
+def test_metaroom_room_and_table_share_one_material():
+    """The paper's room gives walls, floor, ceiling and table one matte material (Roughcast), so
+    the floor behind the object at the training pitches and the wall behind it at the test pitch
+    look alike. Each surface's median colour, unshaded (divided by its Lambert factor), is the
+    same within the quantisation."""
+    from mrcert.scenes.textures import LIGHT
+
+    points, colors = metaroom.room(0.05)
+    table, table_colors = metaroom.table(0.05)
+    half, top = metaroom.HALF, metaroom.CEILING_Z
+    surfaces = {  # (points on the surface, its outward normal)
+        "floor": (np.isclose(points[:, 2], metaroom.FLOOR_Z), (0, 0, 1)),
+        "ceiling": (np.isclose(points[:, 2], top), (0, 0, -1)),
+        "north wall": (np.isclose(points[:, 1], half), (0, -1, 0)),
+        "south wall": (np.isclose(points[:, 1], -half), (0, 1, 0)),
+        "east wall": (np.isclose(points[:, 0], half), (-1, 0, 0)),
+        "west wall": (np.isclose(points[:, 0], -half), (1, 0, 0)),
+    }
+    albedo = {}
+    for name, (on, normal) in surfaces.items():
+        shade = metaroom.AMBIENT + (1 - metaroom.AMBIENT) * max(float(np.dot(normal, LIGHT)), 0.0)
+        albedo[name] = np.median(colors[on], axis=0) / shade
+    on_top = np.isclose(table[:, 2], 0.0)
+    albedo["table top"] = np.median(table_colors[on_top], axis=0) / (metaroom.AMBIENT + (1 - metaroom.AMBIENT) * LIGHT[2])
+    reference = albedo["floor"]
+    for name, value in albedo.items():
+        assert np.allclose(value, reference, atol=0.02), f"{name}: {value} vs floor {reference}"
+
+
 def test_released_layout_loader(tmp_path):
     records = write_release(tmp_path)
     bundle = load(data_cfg("metaroom", [f"data.path={tmp_path}", "motion=tz"], tmp_path))

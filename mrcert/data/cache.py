@@ -17,14 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.errors import MrcertError
-
-GENERATOR_VERSION = 3
-"""Bump when scene generation, pose sampling or rendering changes what a config produces
-(``tests/test_data.py`` fingerprints the scenes' images so that a change cannot slip by).
-2: MetaRoom training poses kept apart from the test poses in every angle (``separation_rule``).
-3: MetaRoom objects at twice their modelled size; training poses also kept apart from the
-validation poses (tabletop)."""
 
 
 def cache_key(spec: dict[str, Any]) -> str:

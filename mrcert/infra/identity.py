@@ -32,6 +32,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.infra.config import plain
 
 COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir")
@@ -172,7 +173,7 @@ def digest(values: Mapping[str, Any]) -> str:
 def identify(cfg: DictConfig | Mapping[str, Any], identity: Identity, train_run: str | None = None) -> RunIdentity:
     """The run and cell keys of ``cfg`` (its ``model.checkpoint`` already bound when the task
     needs a model: see :func:`mrcert.infra.checkpoints.bind_checkpoint`)."""
-    values = defining_values(cfg, identity)
+    values = defining_values(cfg, identity) | {"generator_version": GENERATOR_VERSION}
     checkpoint = None
     if identity.needs_model:
         checkpoint = values.get("model.checkpoint")

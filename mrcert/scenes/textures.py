@@ -37,6 +37,16 @@ def mottled(surface: Surface, color, amp: float, scale: float, seed: int) -> np.
     return c * (1 + amp * noise(surface.points, scale, seed)[:, None])
 
 
+ROUGHCAST = (0.88, 0.87, 0.84)
+"""The room's one material: the MetaRoom's walls, floor, ceiling, door and table are all Webots'
+Roughcast, a matte white plaster whose relief is a normal map."""
+
+
+def roughcast(surface: Surface, seed: int) -> np.ndarray:
+    """Matte off-white plaster: ``ROUGHCAST`` with a fine grain standing in for its relief."""
+    return mottled(surface, ROUGHCAST, 0.06, 0.01, seed)
+
+
 def stripes(values: np.ndarray, period: float, color_a, color_b, duty: float = 0.5) -> np.ndarray:
     """Two colours alternating along ``values`` with the given period."""
     on = np.mod(values / period, 1.0) < duty
