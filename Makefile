@@ -39,7 +39,7 @@ reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished
 	$(MRCERT) -m experiment=tabletop profile=$(PROFILE) task=smooth,attack
 	$(MRCERT) task=tables profile=$(PROFILE) task.show_paper=true
 
-results: $(STAMP) ## the evidence page docs/results.md: ResNet-18, six axes, all 120 test images (hours on 2 CPU cores)
+results: $(STAMP) ## the evidence page docs/results.md: the quick model, six axes, all 120 test images (hours on 2 CPU cores)
 	$(MRCERT) -m experiment=results task=train
 	$(MRCERT) -m experiment=results task=certify,smooth,attack
 	$(MRCERT) -m experiment=results task=certify task.sequential=true

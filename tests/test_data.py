@@ -264,7 +264,9 @@ def test_metaroom_room_and_table_share_one_material():
         shade = metaroom.AMBIENT + (1 - metaroom.AMBIENT) * max(float(np.dot(normal, LIGHT)), 0.0)
         albedo[name] = np.median(colors[on], axis=0) / shade
     on_top = np.isclose(table[:, 2], 0.0)
-    albedo["table top"] = np.median(table_colors[on_top], axis=0) / (metaroom.AMBIENT + (1 - metaroom.AMBIENT) * LIGHT[2])
+    albedo["table top"] = np.median(table_colors[on_top], axis=0) / (
+        metaroom.AMBIENT + (1 - metaroom.AMBIENT) * LIGHT[2]
+    )
     reference = albedo["floor"]
     for name, value in albedo.items():
         assert np.allclose(value, reference, atol=0.02), f"{name}: {value} vs floor {reference}"

@@ -166,7 +166,10 @@ def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
             top = med["any"].index.max()
             sentence += f" (under `any`: {med['any'][top]:.2f} with {top})"
         if every[most] >= NORMAL:
-            verdict = "more training poses are what it takes"
+            verdict = (
+                f"with {most} per class the base classifier performs normally on the test views (the paper's base "
+                f"models: {NORMAL:.2f} and more)"
+            )
         elif every[most] - every[fewest] >= 0.1:
             verdict = (
                 f"more training poses help, but with {most} per class the base classifier is still far from performing "
