@@ -13,9 +13,9 @@ from hydra import compose, initialize_config_dir
 from PIL import Image
 
 from mrcert.core.crop import CropBound
+from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.core.geometry import matrix_to_motion
 from mrcert.core.projection import camera_points
-from mrcert.data.cache import GENERATOR_VERSION
 from mrcert.data.datasets import Augment, render_poses
 from mrcert.data.protocols import look_at_poses
 from mrcert.data.sources import load

@@ -9,4 +9,5 @@ GENERATOR_VERSION = 4
 3: MetaRoom objects at twice their modelled size; training poses also kept apart from the
 validation poses (tabletop).
 4: the MetaRoom's walls, floor, ceiling, door and table of one matte material (Roughcast, as
-in the paper's room); wall surfaces lit as facing into the room."""
+in the paper's room); the room lit with 0.8 ambient (``metaroom.AMBIENT``, was 0.6); wall
+surfaces lit as facing into the room."""
