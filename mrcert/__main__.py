@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,7 @@ from mrcert.infra import config as mrcert_config
 from mrcert.infra.checkpoints import bind_checkpoint
 from mrcert.infra.identity import RunIdentity, identify
 from mrcert.infra.tasks import TASKS, RunContext
-from mrcert.infra.tracking import fail_parent, find_runs, finished_run, task_run
+from mrcert.infra.tracking import fail_parent, find_runs, finished_run, key_lock, task_run
 from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")
@@ -57,13 +58,14 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
             raise ConfigError("task.name", cfg.task.name, f"one of {', '.join(TASKS)}")
         cfg, ident = bind(cfg)
         task = TASKS[cfg.task.name]
-        done = finished_run(cfg, ident) if task.reusable else None
-        if done is not None:
-            log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
-            return dict(done.data.metrics)
-        func = task.load()
-        with task_run(cfg, output_dir, ident) as tracker:
-            result = func(cfg, RunContext(tracker.output_dir, tracker))
+        with key_lock(cfg, ident):  # lookup and creation of this key's run: one job at a time
+            done = finished_run(cfg, ident) if task.reusable else None
+            if done is not None:
+                log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
+                return dict(done.data.metrics)
+            func = task.load()
+            with task_run(cfg, output_dir, ident) as tracker:
+                result = func(cfg, RunContext(tracker.output_dir, tracker))
     except BaseException:
         fail_parent(cfg)
         raise
@@ -93,8 +95,22 @@ def _hydra_main(cfg: DictConfig) -> dict[str, Any]:
         message = _user_error(exc)
         if message is None or hc.mode == RunMode.MULTIRUN:
             raise  # a bug keeps its traceback; in a multirun Hydra records the job and goes on
+        discard_launch(Path(hc.runtime.output_dir))
         print(f"mrcert: error: {message}", file=sys.stderr)
         sys.exit(2)
+
+
+def discard_launch(folder: Path) -> None:
+    """Remove the folder Hydra made for a launch that was refused before any run existed in it
+    (only its ``.hydra`` record and log are there), so a refusal leaves nothing behind."""
+    if not folder.is_dir() or any(p.name != ".hydra" and p.suffix != ".log" for p in folder.iterdir()):
+        return  # a run was created here (resolved_config.yaml, results): keep everything
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        if isinstance(h, logging.FileHandler) and Path(h.baseFilename).resolve().is_relative_to(folder.resolve()):
+            root.removeHandler(h)
+            h.close()
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def _outputs_root(argv: list[str]) -> Path:
@@ -125,7 +141,11 @@ def main() -> None:
         if problem:
             print(f"mrcert: error: {problem}", file=sys.stderr)
             sys.exit(2)
-    _hydra_main()
+    try:
+        _hydra_main()
+    except KeyboardInterrupt:  # the run was closed KILLED on the way out (tracking.task_run)
+        print("mrcert: interrupted; the run is marked KILLED and the same command resumes it", file=sys.stderr)
+        sys.exit(130)
 
 
 if __name__ == "__main__":

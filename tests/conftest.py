@@ -75,6 +75,20 @@ def run_cli(args: list[str], outputs, timeout: int = 600) -> subprocess.Complete
     )
 
 
+def start_cli(args: list[str], outputs) -> subprocess.Popen:
+    """``python -m mrcert ARGS`` writing under ``outputs``, started in the background; its
+    stderr is captured (read it with ``communicate()``)."""
+    env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
+    return subprocess.Popen(
+        [sys.executable, "-m", "mrcert", *args],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
 def kill_when(args: list[str], outputs, ready: Callable[[], bool], timeout: float = 240) -> None:
     """Start ``mrcert ARGS`` and SIGKILL it as soon as ``ready()`` holds (a crash at that moment)."""
     env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}

@@ -1,6 +1,7 @@
 """The store and the job runner survive kills, races and outages; bad inputs fail early."""
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -14,9 +15,9 @@ import torch
 
 from mrcert.__main__ import run_task
 from mrcert.errors import MrcertError
-from mrcert.infra.store import FileLock
+from mrcert.infra.store import FileLock, ensure_sqlite_store
 from mrcert.reporting.certify_log import read_log
-from tests.conftest import ROOT, TINY, compose_cfg, kill_when, run_cli
+from tests.conftest import ROOT, TINY, compose_cfg, kill_when, run_cli, start_cli
 
 TIMING = ["time", "seconds"]
 
@@ -109,25 +110,8 @@ def test_a_half_made_store_is_explained_in_one_line(tmp_path):
 
 
 def test_independent_jobs_started_together_on_a_new_store_all_finish(tmp_path):
-    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path)}
     jobs = [
-        subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "mrcert",
-                "task=render",
-                "data=testscene",
-                "data.density=0.05",
-                "task.num=2",
-                f"task.axes=[{axis}]",
-            ],
-            cwd=ROOT,
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-        )  # fmt: skip
+        start_cli(["task=render", "data=testscene", "data.density=0.05", "task.num=2", f"task.axes=[{axis}]"], tmp_path)
         for axis in ("tx", "ty", "rz", "rx")
     ]
     errors = [job.communicate(timeout=300)[1] for job in jobs]
@@ -153,6 +137,63 @@ def test_resume_never_mixes_two_models_in_one_run(checkpoints, reference, tmp_pa
     assert len(store_runs(tmp_path)) == 2
     pd.testing.assert_frame_equal(read_log(killed_log).drop(columns=TIMING), reference["a"])
     assert list(killed_log.parent.glob("resumed/*/*.log"))  # the resuming process's log is kept with the run
+
+
+def test_a_run_folder_reused_by_another_model_never_mixes_rows(checkpoints, reference, tmp_path):
+    """Issue 20, item 1: certify model a into a folder, kill it after a row, certify model b
+    into the same folder, then rerun a's command: each run's log holds only its own rows."""
+    folder = tmp_path / "same"
+    log = folder / "certify.tsv"
+    a = [*certify_args(checkpoints["a"]), f"hydra.run.dir={folder}"]
+    b = [*certify_args(checkpoints["b"]), f"hydra.run.dir={folder}"]
+    kill_when(a, tmp_path, lambda: log.exists() and len(log.read_text().splitlines()) >= 2)
+    assert len(log.read_text().splitlines()) >= 2
+    done_b = run_cli(b, tmp_path)
+    assert done_b.returncode == 0, done_b.stderr[-2000:]
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), reference["b"])  # none of a's rows
+    (run_b,) = store_runs(tmp_path, "attributes.status = 'FINISHED'")
+    again = run_cli(a, tmp_path)  # a's command resumes a's own run, with a's own rows
+    assert again.returncode == 0, again.stderr[-2000:]
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), reference["a"])
+    runs = {r.info.run_id: r for r in store_runs(tmp_path)}
+    assert len(runs) == 2 and all(r.info.status == "FINISHED" for r in runs.values())
+    kept_b = mlflow.artifacts.download_artifacts(run_id=run_b.info.run_id, artifact_path="certify.tsv")
+    pd.testing.assert_frame_equal(read_log(kept_b).drop(columns=TIMING), reference["b"])  # b's result intact
+    (aside,) = folder.glob("set_aside/*/certify.tsv")  # and b's rows are still on disk
+    pd.testing.assert_frame_equal(read_log(aside).drop(columns=TIMING), reference["b"])
+
+
+@pytest.mark.slow
+def test_identical_jobs_started_together_make_one_run(checkpoints, reference, tmp_path):
+    """Issue 20, item 2: four identical certify jobs, each in its own folder, started together:
+    one run computes, the others stop at once naming it; no second run of the key exists."""
+    ensure_sqlite_store(tmp_path / "mlflow.db")  # an existing store: the jobs race only for the run
+    args = certify_args(checkpoints["a"], n=2000)
+    jobs = [start_cli([*args, f"hydra.run.dir={tmp_path / f'job{k}'}"], tmp_path) for k in range(4)]
+    errors = [job.communicate(timeout=600)[1] for job in jobs]
+    codes = sorted(job.returncode for job in jobs)
+    assert codes == [0, 2, 2, 2], "\n".join(e[-1500:] for e in errors)
+    refused = [e.strip().splitlines()[-1] for e, job in zip(errors, jobs, strict=True) if job.returncode == 2]
+    named = "mrcert: error: an identical job is computing this config now"
+    assert all(line.startswith(named) for line in refused), refused
+    (run,) = store_runs(tmp_path)
+    assert run.info.status == "FINISHED"
+
+
+def test_ctrl_c_is_one_line_and_the_run_is_killed(checkpoints, tmp_path):
+    """Issue 20, item 5: Ctrl-C during certification prints one line (no traceback), exits 130,
+    and leaves the run KILLED for the same command to resume."""
+    proc = start_cli(certify_args(checkpoints["a"], n=2000), tmp_path)
+    deadline = time.time() + 240
+    while time.time() < deadline and not any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 130 and "Traceback" not in err, err[-2000:]
+    last = err.strip().splitlines()[-1]
+    assert last == "mrcert: interrupted; the run is marked KILLED and the same command resumes it"
+    (run,) = store_runs(tmp_path)
+    assert run.info.status == "KILLED"
 
 
 def free_port() -> int:
@@ -186,6 +227,8 @@ def test_bad_input_files_fail_before_any_run_exists(checkpoints, tmp_path):
         (["task=train", "data=custom", f"data.path={tmp_path / 'none.ply'}", f"data.poses={poses}"], "does not exist"),
         (["task=train", "data=custom", f"data.path={scan}", f"data.poses={poses}"], "is not valid UTF-8 JSON"),
         (["task=import", f"task.path={log}"], "lacks the columns"),
+        (["task=train", "data.classes=[apple,nonexistent]"], r"data.classes has unknown classes \['nonexistent'\]"),
+        (["task=certify", "data.classes=[nonexistent]"], r"data.classes has unknown classes \['nonexistent'\]"),
     ]
     for args, message in cases:
         with pytest.raises(MrcertError, match=message) as info:
@@ -197,6 +240,7 @@ def test_bad_input_files_fail_before_any_run_exists(checkpoints, tmp_path):
     assert time.time() - t0 < 30 and proc.returncode == 2 and "Traceback" not in proc.stderr
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("mrcert: error: ") and "is not a mrcert checkpoint" in last
+    assert not list((tmp_path / "runs" / "certify").glob("*")), "a refused launch left its folder behind"
 
 
 def _write_cloud(path: Path) -> None:

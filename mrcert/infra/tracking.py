@@ -160,6 +160,12 @@ class Tracker:
     output_dir: Path
     run_id: str | None = None
     resumed: bool = False
+    key: str | None = None
+    """The run key: with the run id, who owns the per-image logs in ``output_dir``."""
+
+    @property
+    def owner(self) -> dict[str, str | None]:
+        return {"run_key": self.key, "run_id": self.run_id}
 
     @property
     def enabled(self) -> bool:
@@ -261,6 +267,27 @@ def run_lock(folder: Path) -> FileLock:
     return FileLock(Path(folder) / ".mrcert.lock")
 
 
+@contextmanager
+def key_lock(cfg: DictConfig, ident: RunIdentity) -> Iterator[None]:
+    """Held from the lookup of a run of this run key to the run's end, so that identical jobs
+    started together make one run: the first computes it, the others stop at once naming it
+    (they would otherwise each find no run and each create one). The lock lives under
+    ``paths.outputs/locks``: it coordinates the jobs that share that folder."""
+    if not cfg.tracking.enabled:
+        yield
+        return
+    lock = FileLock(Path(cfg.paths.outputs) / "locks" / f"{ident.key}.lock")
+    if not lock.acquire(blocking=False):
+        raise MrcertError(
+            f"an identical job is computing this config now ({lock.holder()}; run key {ident.key}); "
+            "wait for it to finish, then rerun to reuse its result (skip_finished=true) or resume it"
+        )
+    try:
+        yield
+    finally:
+        lock.release()
+
+
 def _resumable(cfg: DictConfig, ident: RunIdentity):
     """The newest interrupted run of this run key with its lock taken, or None.
 
@@ -322,7 +349,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
     resolved = output_dir / "resolved_config.yaml"
     if not cfg.tracking.enabled:
         resolved.write_text(to_yaml(cfg))
-        yield Tracker(output_dir)
+        yield Tracker(output_dir, key=ident.key)
         return
     info = _parent_info() or {}
     parent_id = info.get("run_id")
@@ -353,7 +380,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
                 mlflow.log_artifact(str(resolved))
             log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
             try:
-                yield Tracker(output_dir, run.info.run_id, resumed=previous is not None)
+                yield Tracker(output_dir, run.info.run_id, resumed=previous is not None, key=ident.key)
             except KeyboardInterrupt:
                 mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
                 raise

@@ -10,6 +10,10 @@ the exact step function of the radii.
 from __future__ import annotations
 
 import datetime
+import json
+import logging
+import os
+import time
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -17,6 +21,8 @@ import numpy as np
 import pandas as pd
 
 from mrcert.errors import MrcertError
+
+log = logging.getLogger(__name__)
 
 COHEN_COLUMNS = ["idx", "label", "predict", "radius", "correct", "time"]
 EXTRA_COLUMNS = ["count_a", "n0", "n", "p_a_lower", "sigma", "axis", "seconds"]
@@ -32,13 +38,58 @@ def format_row(row: dict, columns: list[str]) -> str:
 
 
 class ResultLog:
-    """An append-only per-image TSV (first column ``idx``) that a restarted run resumes."""
+    """An append-only per-image TSV (first column ``idx``) that a restarted run resumes.
 
-    def __init__(self, path: Path, columns: list[str] = COLUMNS):
+    A log belongs to one run: ``owner`` (the run key and, when tracked, the MLflow run id) is
+    written beside it as ``<log>.owner``. Rows are adopted only by the run that wrote them; a
+    log of any other run found in the folder (a reused ``hydra.run.dir``, an overwritten
+    checkpoint) is moved aside to ``set_aside/`` before the first row, never mixed, and is
+    taken back when its own run resumes there."""
+
+    def __init__(self, path: Path, columns: list[str] = COLUMNS, owner: dict[str, str | None] | None = None):
         self.path, self.columns = Path(path), list(columns)
+        self.owner = owner
+        self._claimed = owner is None
+
+    @property
+    def owner_path(self) -> Path:
+        return self.path.with_name(self.path.name + ".owner")
+
+    def _claim(self) -> None:
+        """Make the file this run's: set aside another run's log, take back this run's own."""
+        if self._claimed:
+            return
+        theirs = _read_owner(self.owner_path)
+        if theirs != self.owner and (self.path.exists() or self.owner_path.exists()):
+            run = (theirs or {}).get("run_id") or "unknown-run"
+            aside = self.path.parent / SET_ASIDE / f"{run}_{time.strftime('%Y%m%d-%H%M%S')}_{os.getpid()}"
+            aside.mkdir(parents=True, exist_ok=True)
+            for f in (self.path, self.owner_path):
+                if f.exists():
+                    os.replace(f, aside / f.name)
+            log.warning(
+                "%s held rows of another run (%s); moved them to %s: a run only adopts its own rows",
+                self.path,
+                _describe(theirs),
+                aside,
+            )
+        if not self.path.exists():
+            for kept in sorted((self.path.parent / SET_ASIDE).glob(f"*/{self.owner_path.name}"), reverse=True):
+                if _read_owner(kept) == self.owner and (kept.parent / self.path.name).exists():
+                    os.replace(kept.parent / self.path.name, self.path)
+                    log.info("took back this run's own rows from %s", kept.parent)
+                    break
+        tmp = self.owner_path.with_name(self.owner_path.name + f".tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(self.owner, sort_keys=True) + "\n")
+        os.replace(tmp, self.owner_path)
+        for kept in (self.path.parent / SET_ASIDE).glob(f"*/{self.owner_path.name}"):
+            if _read_owner(kept) == self.owner:  # taken back: no second copy of its rows
+                kept.unlink()
+        self._claimed = True
 
     def done(self) -> set[int]:
-        """Indices already certified; truncates a torn last line left by a crash."""
+        """Indices already done by this run; truncates a torn last line left by a crash."""
+        self._claim()
         if not self.path.exists():
             return set()
         text = self.path.read_text()
@@ -53,12 +104,30 @@ class ResultLog:
         return {int(line.split("\t", 1)[0]) for line in lines[1:]}
 
     def append(self, row: dict) -> None:
+        self._claim()
         new = not self.path.exists() or self.path.stat().st_size == 0
         with open(self.path, "a") as f:
             if new:
                 f.write("\t".join(self.columns) + "\n")
             f.write(format_row(row, self.columns) + "\n")
             f.flush()
+
+
+SET_ASIDE = "set_aside"
+"""Where a run folder keeps per-image logs of other runs that were found in it."""
+
+
+def _read_owner(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _describe(owner: dict | None) -> str:
+    if not owner:
+        return "no owner recorded"
+    return f"run {owner.get('run_id') or '(untracked)'}, key {owner.get('run_key')}"
 
 
 def read_log(path: Path, required: list[str] = COHEN_COLUMNS[:5]) -> pd.DataFrame:

@@ -22,8 +22,8 @@ from mrcert.core.smoothing import ABSTAIN, image_generator
 from mrcert.errors import MrcertError
 from mrcert.infra.tasks import RunContext
 from mrcert.reporting import metrics as summaries
-from mrcert.reporting.certify_log import ResultLog, read_log
-from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
+from mrcert.reporting.certify_log import read_log
+from mrcert.tasks.evaluation import log_outputs, prepare, result_log, run_per_image
 
 COLUMNS = [
     "idx",
@@ -64,7 +64,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if not ev.distribution.single:
         raise MrcertError(f"task=attack perturbs one axis; motion={ev.distribution.name} smooths several")
     axis = ev.distribution.axes[0]
-    log = ResultLog(ctx.output_dir / LOG, COLUMNS)
+    log = result_log(ctx, LOG, COLUMNS)
 
     @torch.inference_mode()
     def attack_one(i: int) -> dict[str, Any]:

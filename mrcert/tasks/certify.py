@@ -15,7 +15,7 @@ from mrcert.core.smoothing import image_generator
 from mrcert.infra.tasks import RunContext
 from mrcert.reporting import certify_log
 from mrcert.reporting.plots import curve_figure, save
-from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
+from mrcert.tasks.evaluation import log_outputs, prepare, result_log, run_per_image
 
 
 def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, region: str) -> dict[str, float]:
@@ -41,7 +41,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
     dist = ev.distribution
-    log = certify_log.ResultLog(ctx.output_dir / LOG)
+    log = result_log(ctx, LOG)
 
     def certify_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]

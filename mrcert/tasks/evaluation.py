@@ -67,6 +67,12 @@ def prepare(cfg: DictConfig) -> Evaluation:
     return Evaluation(bundle, samples, model, smoothed, indices, device, str(t.get("backend", "auto")))
 
 
+def result_log(ctx: RunContext, name: str, columns: list[str] | None = None) -> ResultLog:
+    """The run's per-image log ``name`` in its folder, owned by this run (rows of any other run
+    found there are set aside, never adopted)."""
+    return ResultLog(ctx.output_dir / name, *([columns] if columns else []), owner=ctx.tracker.owner)
+
+
 def run_per_image(log: ResultLog, indices: list[int], work: Callable[[int], dict[str, Any]], desc: str) -> int:
     """Run ``work(i)`` for every index not yet in ``log``, appending each row as it is done."""
     done = log.done()

@@ -50,9 +50,21 @@ CHECKS: dict[str, Callable[[Path], None]] = {
 }
 
 
+def check_classes(data: DictConfig) -> None:
+    """Raise a one-line :class:`MrcertError` naming any ``data.classes`` entry a synthetic data
+    set does not have (a released or custom data set's classes come from its files, which are
+    read when it is opened)."""
+    from mrcert.data.synthetic import FAMILIES, SyntheticSource
+
+    if data.get("source") in FAMILIES:
+        SyntheticSource(data)  # checks the class names; builds no scene
+
+
 def check_inputs(cfg: DictConfig, identity: Identity) -> None:
-    """Raise a one-line :class:`MrcertError` for the first file input of ``cfg`` that is missing
-    or unreadable (``runs:/`` URIs are checked against the store when bound)."""
+    """Raise a one-line :class:`MrcertError` for unknown class names, then for the first file
+    input of ``cfg`` that is missing or unreadable (``runs:/`` URIs are checked against the
+    store when bound)."""
+    check_classes(cfg.data)
     for key in identity.files:
         value = OmegaConf.select(cfg, key, default=None)
         if value is None or value == "???" or ":/" in str(value):

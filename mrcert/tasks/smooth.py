@@ -9,8 +9,8 @@ from omegaconf import DictConfig
 from mrcert.core.smoothing import image_generator
 from mrcert.infra.tasks import RunContext
 from mrcert.reporting import metrics as summaries
-from mrcert.reporting.certify_log import ResultLog, read_log
-from mrcert.tasks.evaluation import log_outputs, prepare, run_per_image
+from mrcert.reporting.certify_log import read_log
+from mrcert.tasks.evaluation import log_outputs, prepare, result_log, run_per_image
 
 COLUMNS = ["idx", "label", "predict", "correct", "n", "axis", "seconds"]
 LOG = "smooth.tsv"
@@ -19,7 +19,7 @@ LOG = "smooth.tsv"
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
-    log = ResultLog(ctx.output_dir / LOG, COLUMNS)
+    log = result_log(ctx, LOG, COLUMNS)
 
     def predict_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
