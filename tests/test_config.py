@@ -10,6 +10,7 @@ from omegaconf import OmegaConf
 from mrcert.errors import ConfigError
 from mrcert.infra.config import CONF_DIR, validate
 from mrcert.infra.identity import flatten
+from tests.conftest import run_cli
 
 GROUPS = sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra")
 
@@ -112,8 +113,8 @@ def test_default_store_is_an_absolute_sqlite_uri_under_outputs():
         ("motion.sigma=0", "motion.sigma", "0", "> 0"),
         ("motion.sigma=-0.1", "motion.sigma", "-0.1", "> 0"),
         ("motion.radius=-1", "motion.radius", "-1", ">= 0"),
-        ("+certify.alpha=1.5", "certify.alpha", "1.5", "strictly between 0 and 1"),
-        ("+certify.alpha=0", "certify.alpha", "0", "strictly between 0 and 1"),
+        ("task=certify task.alpha=1.5", "task.alpha", "1.5", "strictly between 0 and 1"),
+        ("task=certify task.alpha=0", "task.alpha", "0", "strictly between 0 and 1"),
         ("data.image.height=0", "data.image.height", "0", "integer >= 1"),
         ("data.image.width=0", "data.image.width", "0", "integer >= 1"),
         ("data.image.fx=-3", "data.image.fx", "-3", "> 0"),
@@ -122,7 +123,7 @@ def test_default_store_is_an_absolute_sqlite_uri_under_outputs():
     ],
 )
 def test_bad_values_are_rejected_with_key_value_and_allowed(override, key, value, allowed):
-    cfg = compose_cfg([override])
+    cfg = compose_cfg(override.split())
     with pytest.raises(ConfigError) as info:
         validate(cfg)
     message = str(info.value)
@@ -200,3 +201,21 @@ def test_a_key_added_with_plus_that_no_schema_has_is_named(override):
     key = override[1:].split("=")[0]
     with pytest.raises(ConfigError, match=rf"config value {key}=.* not a key of this"):
         validate(compose_cfg(["task=certify", override]))
+
+
+@pytest.mark.parametrize("override,near", [("+seeed=1", "did you mean seed?"), ("+foo=1", "its keys: task, data")])
+def test_an_unknown_top_level_key_is_refused_naming_the_nearest(override, near):
+    """A typo such as ``+seeed=1`` would otherwise run and record a separate result."""
+    key = override[1:].split("=")[0]
+    with pytest.raises(
+        ConfigError, match=rf"config value {key}=1 is not allowed: not a key of mrcert's config"
+    ) as info:
+        validate(compose_cfg(["task=train", override]))
+    assert near in str(info.value)
+
+
+def test_an_unknown_top_level_key_leaves_no_run(tmp_path):
+    proc = run_cli(["task=render", "data=testscene", "+seeed=1"], tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "did you mean seed?" in proc.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "mlflow.db").exists() and not list((tmp_path / "runs").glob("*/*"))

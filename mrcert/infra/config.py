@@ -8,6 +8,7 @@ Importing this module registers the OmegaConf resolvers the configs in ``conf/``
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
 import secrets
@@ -158,8 +159,28 @@ def _unknown_keys(node: Any, prefix: str) -> Iterator[tuple[str, list[str]]]:
             yield from _unknown_keys(child, f"{prefix}.{key}")
 
 
+TOP_LEVEL = (
+    *("task", "data", "profile", "train", "motion", "model", "attack", "tracking"),
+    *("paths", "seed", "device", "skip_finished"),
+)
+"""The root config's keys (conf/config.yaml and its groups); anything else at the top, such as
+a mistyped ``+seeed=1``, is refused instead of silently making a separate result."""
+
+
+def _unknown_top_level(cfg: DictConfig) -> None:
+    for key in (k for k in cfg if k != "hydra" and k not in TOP_LEVEL):
+        near = difflib.get_close_matches(str(key), TOP_LEVEL, n=3, cutoff=0.5)
+        hint = f"did you mean {' or '.join(near)}? " if near else ""
+        raise ConfigError(
+            str(key),
+            OmegaConf.select(cfg, str(key)),
+            f"not a key of mrcert's config; {hint}its keys: {', '.join(TOP_LEVEL)}",
+        )
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded)."""
+    _unknown_top_level(cfg)
     try:
         data = plain(cfg, throw_on_missing=True)
     except MissingMandatoryValue as exc:
