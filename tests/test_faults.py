@@ -1,6 +1,7 @@
 """The store and the job runner survive kills, races and outages; bad inputs fail early."""
 
 import os
+import resource
 import signal
 import socket
 import subprocess
@@ -107,6 +108,28 @@ def test_a_half_made_store_is_explained_in_one_line(tmp_path):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     line = proc.stderr.strip().splitlines()[-1]
     assert f"the MLflow store {db} is incomplete" in line and f"mv {db} {db}.broken" in line
+
+
+def test_a_full_disk_while_creating_the_store_is_one_line(tmp_path):
+    """Issue 20, item 4: no room for the store (here a 200 KB file size limit, which SQLite
+    meets as a full disk would be met): one line naming the store and the fix, nothing half
+    made left behind, and the same command works once there is room."""
+    args = ["task=render", "data=testscene", "data.density=0.05", "task.num=2", "task.axes=[tx]"]
+
+    def small_disk():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200 * 1024, 200 * 1024))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails instead of killing
+
+    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path)}
+    cmd = [sys.executable, "-m", "mrcert", *args]
+    full = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300, preexec_fn=small_disk)
+    assert full.returncode == 2 and "Traceback" not in full.stderr, full.stderr[-2000:]
+    db = tmp_path / "mlflow.db"
+    line = full.stderr.strip().splitlines()[-1]
+    assert line.startswith(f"mrcert: error: cannot create the MLflow store {db}") and "free some space" in line
+    assert not db.exists() and not list(tmp_path.glob(".mlflow.db.tmp-*"))
+    assert not list((tmp_path / "runs").glob("*/*"))  # the refused launch left no folder
+    assert run_cli(args, tmp_path).returncode == 0
 
 
 def test_independent_jobs_started_together_on_a_new_store_all_finish(tmp_path):

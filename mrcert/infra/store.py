@@ -118,10 +118,20 @@ def _build(db: Path) -> None:
 
     for stale in db.parent.glob(f".{db.name}.tmp-*"):  # left by a killed builder: we hold the lock
         stale.unlink(missing_ok=True)
+    from sqlalchemy.exc import OperationalError
+
     tmp = db.with_name(f".{db.name}.tmp-{os.getpid()}")
-    store = SqlAlchemyStore(f"sqlite:///{tmp}", default_artifact_root=str(db.parent / "mlartifacts"))
-    store.engine.dispose()
-    os.replace(tmp, db)
+    try:
+        store = SqlAlchemyStore(f"sqlite:///{tmp}", default_artifact_root=str(db.parent / "mlartifacts"))
+        store.engine.dispose()
+        os.replace(tmp, db)
+    except (OperationalError, OSError) as exc:  # a full disk, a file size limit, a read-only folder
+        tmp.unlink(missing_ok=True)
+        reason = getattr(exc, "orig", None) or getattr(exc, "strerror", None) or exc
+        raise MrcertError(
+            f"cannot create the MLflow store {db} ({reason}): free some space in {db.parent} or point "
+            "paths.outputs / MRCERT_OUTPUTS at another folder, then rerun"
+        ) from None
 
 
 @functools.cache
