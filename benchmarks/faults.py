@@ -9,7 +9,17 @@ timing columns) or the final weights must be identical, no test image may appear
 the store must hold exactly one run. Prints the totals, e.g.
 ``20 kills, 0 results lost, 0 duplicate rows, 0 extra runs``.
 
-Usage: python benchmarks/faults.py [--kills 20] [--seed 0]
+Two more scenarios follow, each against its own reference:
+
+* **a reused run folder**: certify model a into one ``hydra.run.dir``, SIGKILL it at a random
+  moment, certify model b (another checkpoint) into the same folder to the end, then run a's
+  command again to the end. a's log must equal a's reference and b's logged result b's: rows
+  of the other model in either are counted as *mixed*.
+* **identical jobs at once**: ``--jobs`` identical certify jobs, each with its own folder,
+  started together on an existing store: exactly one run may exist afterwards (others are
+  counted as *duplicate runs*), and its rows must equal the reference.
+
+Usage: python benchmarks/faults.py [--kills 20] [--jobs 8] [--seed 0]
 """
 
 from __future__ import annotations
@@ -94,9 +104,68 @@ def same(kind: str, a, b) -> bool:
     return a.equals(b)
 
 
+def certify_rows(folder: Path):
+    from mrcert.reporting.certify_log import read_log
+
+    return read_log(folder / "certify.tsv").drop(columns=["time", "seconds"])
+
+
+def reused(work: Path, a: Path, b: Path, reference_a, rng: random.Random, duration: float, env: dict) -> int:
+    """Rows of the wrong model in a's and b's results after b reuses a's run folder."""
+    import mlflow
+
+    outputs, folder = work / "reused", work / "reused" / "same-folder"
+    job_a, job_b = (certify(c) + [f"hydra.run.dir={folder}"] for c in (a, b))
+    reference_b = outcome("certify", _reference(work / "reference-b", certify(b), env))[0]
+    proc = mrcert(job_a, outputs, env)
+    time.sleep(rng.uniform(0.5, duration))
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    finish(job_b, outputs, env)
+    mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+    (run_b,) = mlflow.search_runs(
+        search_all_experiments=True, filter_string="attributes.status = 'FINISHED'", output_format="list"
+    )
+    finish(job_a, outputs, env)
+    logged_b = Path(mlflow.artifacts.download_artifacts(run_id=run_b.info.run_id, artifact_path="certify.tsv"))
+    got_a, got_b = certify_rows(folder), certify_rows(logged_b.parent)
+    return _foreign(got_a, reference_a) + _foreign(got_b, reference_b)
+
+
+def _reference(outputs: Path, job: list[str], env: dict) -> Path:
+    finish(job, outputs, env)
+    return outputs
+
+
+def _foreign(rows, reference) -> int:
+    """Rows that are not the reference's row of the same image (or images the reference lacks)."""
+    merged = rows.merge(reference, on="idx", how="left", suffixes=("", "_ref"), indicator=True)
+    cols = [c for c in rows.columns if c != "idx"]
+    differs = merged["_merge"] != "both"
+    for c in cols:
+        differs |= merged[c].astype(str) != merged[f"{c}_ref"].astype(str)
+    return int(differs.sum()) + max(0, len(reference) - len(rows))
+
+
+def simultaneous(work: Path, job: list[str], n: int, reference, env: dict) -> tuple[int, int]:
+    """(duplicate runs, 1 if the one run's rows differ from the reference) of ``n`` identical
+    jobs started together on an existing store."""
+    from mrcert.infra.store import ensure_sqlite_store
+
+    outputs = work / "simultaneous"
+    outputs.mkdir()
+    ensure_sqlite_store(outputs / "mlflow.db")
+    procs = [mrcert([*job, f"hydra.run.dir={outputs / f'job{k}'}"], outputs, env) for k in range(n)]
+    codes = [p.communicate() and p.returncode for p in procs]
+    result, _, runs = outcome("certify", outputs)
+    print(f"{n} identical jobs: exit codes {sorted(codes)}, runs: {[r.info.status for r in runs]}", flush=True)
+    return len(runs) - 1, int(not same("certify", result, reference))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--kills", type=int, default=20)
+    ap.add_argument("--jobs", type=int, default=8, help="identical jobs started together")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--keep", action="store_true", help="keep the work folder (printed) for inspection")
@@ -133,6 +202,12 @@ def main() -> None:
             states = ", ".join(f"{r.info.run_id[:8]} {r.info.status}" for r in runs)
             print(f"trial {trials} ({kind}, {outputs}): {kills} kills; runs: {states}; same: {ok}", flush=True)
         print(f"{kills} kills, {lost} results lost, {duplicates} duplicate rows, {extra} extra runs ({trials} trials)")
+        finish([*TRAIN, "train.epochs=2"], work / "model-b", env)
+        (other,) = (work / "model-b").glob("runs/train/*/last.pt")
+        mixed = reused(work, checkpoint, other, reference["certify"], rng, duration["certify"], env)
+        dup_runs, wrong = simultaneous(work, certify(checkpoint), args.jobs, reference["certify"], env)
+        print(f"reused run folder: {mixed} mixed rows; {args.jobs} identical jobs at once: {dup_runs} duplicate runs")
+        print(f"{lost + wrong} results lost, {mixed} mixed rows, {extra + dup_runs} duplicate or extra runs in all")
     finally:
         if args.keep:
             print(f"work folder kept: {work}")
