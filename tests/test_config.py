@@ -219,3 +219,16 @@ def test_an_unknown_top_level_key_leaves_no_run(tmp_path):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "did you mean seed?" in proc.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "mlflow.db").exists() and not list((tmp_path / "runs").glob("*/*"))
+
+
+def test_table_links_follow_the_ui_port(monkeypatch):
+    """``make ... PORT=5123`` exports the UI's address; the tables' links point there."""
+    import subprocess
+
+    shown = subprocess.run(
+        ["make", "-s", "--eval", "show-ui-url:;@echo $$MRCERT_UI_URL", "show-ui-url", "PORT=5123"],
+        cwd=CONF_DIR.parent, capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert shown.stdout.strip() == "http://127.0.0.1:5123"
+    monkeypatch.setenv("MRCERT_UI_URL", shown.stdout.strip())
+    assert compose_cfg(["task=tables"]).task.ui_url == "http://127.0.0.1:5123"
