@@ -75,9 +75,11 @@ def run_cli(args: list[str], outputs, timeout: int = 600) -> subprocess.Complete
     )
 
 
-def start_cli(args: list[str], outputs) -> subprocess.Popen:
+def start_cli(args: list[str], outputs, interruptible: bool = False) -> subprocess.Popen:
     """``python -m mrcert ARGS`` writing under ``outputs``, started in the background; its
-    stderr is captured (read it with ``communicate()``)."""
+    stderr is captured (read it with ``communicate()``). ``interruptible``: SIGINT acts as
+    Ctrl-C in a terminal would, even when the tests themselves run as a background job (whose
+    children start with SIGINT ignored)."""
     env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
     return subprocess.Popen(
         [sys.executable, "-m", "mrcert", *args],
@@ -86,6 +88,7 @@ def start_cli(args: list[str], outputs) -> subprocess.Popen:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) if interruptible else None,
     )
 
 

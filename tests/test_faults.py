@@ -206,7 +206,7 @@ def test_identical_jobs_started_together_make_one_run(checkpoints, reference, tm
 def test_ctrl_c_is_one_line_and_the_run_is_killed(checkpoints, tmp_path):
     """Issue 20, item 5: Ctrl-C during certification prints one line (no traceback), exits 130,
     and leaves the run KILLED for the same command to resume."""
-    proc = start_cli(certify_args(checkpoints["a"], n=2000), tmp_path)
+    proc = start_cli(certify_args(checkpoints["a"], n=2000), tmp_path, interruptible=True)
     deadline = time.time() + 240
     while time.time() < deadline and not any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)):
         time.sleep(0.05)

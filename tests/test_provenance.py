@@ -90,7 +90,8 @@ def test_a_run_held_by_a_live_process_is_never_resumed_and_a_killed_one_is(train
         rows = log.read_text()
         second = run_cli(args, tmp_path)
         assert second.returncode == 2, second.stderr[-2000:]
-        assert "still being written by a live process" in second.stderr and f"pid {first.pid}" in second.stderr
+        # refused at once, naming the live process (the run key's lock: an identical job is running)
+        assert "an identical job is computing this config now" in second.stderr and f"pid {first.pid}" in second.stderr
         assert log.read_text() == rows  # the second process wrote nothing into the live run
     finally:
         first.send_signal(signal.SIGKILL)
