@@ -7,7 +7,7 @@ PROFILE ?= quick
 STAMP := $(VENV)/.installed
 PORT ?= 5000
 # The MLflow UI's address: `make ui` serves there and the tables' links point there.
-export MRCERT_UI_URL ?= http://127.0.0.1:$(PORT)
+export MRCERT_UI_URL := http://127.0.0.1:$(PORT)
 OUTPUTS ?= outputs
 # Threads for tests and benchmarks (the reference machine has 2 cores).
 THREADS ?= 2
