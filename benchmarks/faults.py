@@ -18,6 +18,10 @@ Two more scenarios follow, each against its own reference:
 * **identical jobs at once**: ``--jobs`` identical certify jobs, each with its own folder,
   started together on an existing store: exactly one run may exist afterwards (others are
   counted as *duplicate runs*), and its rows must equal the reference.
+* **a full disk while the store is created**: the certify job on a new outputs folder under a
+  file size limit of 64 KiB, 256 KiB and 1 MiB (as a full disk is met): it must end with one
+  line, no traceback; the same command with room must then give the reference's rows and one
+  run.
 
 Usage: python benchmarks/faults.py [--kills 20] [--jobs 8] [--seed 0]
 """
@@ -80,8 +84,6 @@ def outcome(kind: str, outputs: Path):
     import mlflow
     import torch
 
-    from mrcert.reporting.certify_log import read_log
-
     mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
     runs = mlflow.search_runs(search_all_experiments=True, output_format="list")
     finished = [r for r in runs if r.info.status == "FINISHED"]
@@ -90,8 +92,8 @@ def outcome(kind: str, outputs: Path):
     folder = Path(finished[0].data.tags["mrcert.output_dir"])
     if kind == "train":
         return torch.load(folder / "last.pt", weights_only=True)["model"], 0, runs
-    rows = read_log(folder / "certify.tsv")
-    return rows.drop(columns=["time", "seconds"]), int(rows["idx"].duplicated().sum()), runs
+    rows = certify_rows(folder)
+    return rows, int(rows["idx"].duplicated().sum()), runs
 
 
 def same(kind: str, a, b) -> bool:
@@ -105,6 +107,7 @@ def same(kind: str, a, b) -> bool:
 
 
 def certify_rows(folder: Path):
+    """A certify log without its timing columns (which differ between identical runs)."""
     from mrcert.reporting.certify_log import read_log
 
     return read_log(folder / "certify.tsv").drop(columns=["time", "seconds"])
@@ -116,9 +119,10 @@ def reused(work: Path, a: Path, b: Path, reference_a, rng: random.Random, durati
 
     outputs, folder = work / "reused", work / "reused" / "same-folder"
     job_a, job_b = (certify(c) + [f"hydra.run.dir={folder}"] for c in (a, b))
-    reference_b = outcome("certify", _reference(work / "reference-b", certify(b), env))[0]
+    finish(certify(b), work / "reference-b", env)
+    reference_b = outcome("certify", work / "reference-b")[0]
     proc = mrcert(job_a, outputs, env)
-    time.sleep(rng.uniform(0.5, duration))
+    time.sleep(kill_time(rng, duration))
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     finish(job_b, outputs, env)
@@ -130,11 +134,6 @@ def reused(work: Path, a: Path, b: Path, reference_a, rng: random.Random, durati
     logged_b = Path(mlflow.artifacts.download_artifacts(run_id=run_b.info.run_id, artifact_path="certify.tsv"))
     got_a, got_b = certify_rows(folder), certify_rows(logged_b.parent)
     return _foreign(got_a, reference_a) + _foreign(got_b, reference_b)
-
-
-def _reference(outputs: Path, job: list[str], env: dict) -> Path:
-    finish(job, outputs, env)
-    return outputs
 
 
 def _foreign(rows, reference) -> int:
@@ -156,10 +155,48 @@ def simultaneous(work: Path, job: list[str], n: int, reference, env: dict) -> tu
     outputs.mkdir()
     ensure_sqlite_store(outputs / "mlflow.db")
     procs = [mrcert([*job, f"hydra.run.dir={outputs / f'job{k}'}"], outputs, env) for k in range(n)]
-    codes = [p.communicate() and p.returncode for p in procs]
+    for p in procs:
+        p.communicate()
+    codes = [p.returncode for p in procs]
     result, _, runs = outcome("certify", outputs)
     print(f"{n} identical jobs: exit codes {sorted(codes)}, runs: {[r.info.status for r in runs]}", flush=True)
     return len(runs) - 1, int(not same("certify", result, reference))
+
+
+def disk_full(work: Path, job: list[str], reference, env: dict, limits_kib=(64, 256, 1024)) -> tuple[int, int, int]:
+    """(results lost, extra runs, tracebacks) when the disk fills while a new store is created:
+    each job runs under a file size limit (as a full disk is met), then again with room."""
+    import resource
+
+    lost = extra = tracebacks = 0
+    for kib in limits_kib:
+
+        def small_disk(kib=kib):
+            resource.setrlimit(resource.RLIMIT_FSIZE, (kib * 1024, kib * 1024))
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails instead of killing
+
+        outputs = work / f"disk-full-{kib}k"
+        proc = subprocess.run(
+            [sys.executable, "-m", "mrcert", *job],
+            cwd=ROOT,
+            env=env | {"MRCERT_OUTPUTS": str(outputs)},
+            capture_output=True,
+            text=True,
+            preexec_fn=small_disk,
+        )
+        tracebacks += "Traceback" in proc.stderr
+        finish(job, outputs, env)
+        result, _, runs = outcome("certify", outputs)
+        lost += not same("certify", result, reference)
+        extra += len(runs) - 1
+        print(f"disk full at {kib} KiB: exit {proc.returncode}, {proc.stderr.strip().splitlines()[-1:]}", flush=True)
+    return lost, extra, tracebacks
+
+
+def kill_time(rng: random.Random, duration: float) -> float:
+    """A moment to kill a job whose uninterrupted run takes ``duration`` s: within its first
+    70%, so that a resumed job, which has less left to do, is mostly still running."""
+    return rng.uniform(0.2, 0.7) * duration
 
 
 def main() -> None:
@@ -187,7 +224,7 @@ def main() -> None:
             outputs = work / f"trial-{trials}"
             for _ in range(min(rng.randint(1, 3), args.kills - kills)):
                 proc = mrcert(jobs[kind], outputs, env)
-                time.sleep(rng.uniform(0.5, duration[kind]))
+                time.sleep(kill_time(rng, duration[kind]))
                 if proc.poll() is None:  # still running: a real kill
                     proc.send_signal(signal.SIGKILL)
                     kills += 1
@@ -207,7 +244,10 @@ def main() -> None:
         mixed = reused(work, checkpoint, other, reference["certify"], rng, duration["certify"], env)
         dup_runs, wrong = simultaneous(work, certify(checkpoint), args.jobs, reference["certify"], env)
         print(f"reused run folder: {mixed} mixed rows; {args.jobs} identical jobs at once: {dup_runs} duplicate runs")
-        print(f"{lost + wrong} results lost, {mixed} mixed rows, {extra + dup_runs} duplicate or extra runs in all")
+        full_lost, full_extra, tracebacks = disk_full(work, certify(checkpoint), reference["certify"], env)
+        print(f"disk full while creating the store: {tracebacks} tracebacks, {full_lost} results lost afterwards")
+        lost, extra = lost + wrong + full_lost, extra + dup_runs + full_extra
+        print(f"{lost} results lost, {mixed} mixed rows, {extra} duplicate or extra runs in all")
     finally:
         if args.keep:
             print(f"work folder kept: {work}")

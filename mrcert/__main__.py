@@ -20,7 +20,7 @@ from mrcert.infra import config as mrcert_config
 from mrcert.infra.checkpoints import bind_checkpoint
 from mrcert.infra.identity import RunIdentity, identify
 from mrcert.infra.tasks import TASKS, RunContext
-from mrcert.infra.tracking import fail_parent, find_runs, finished_run, key_lock, task_run
+from mrcert.infra.tracking import fail_parent, find_runs, finished_run, key_lock, log_files_under, task_run
 from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")
@@ -105,11 +105,9 @@ def discard_launch(folder: Path) -> None:
     (only its ``.hydra`` record and log are there), so a refusal leaves nothing behind."""
     if not folder.is_dir() or any(p.name != ".hydra" and p.suffix != ".log" for p in folder.iterdir()):
         return  # a run was created here (resolved_config.yaml, results): keep everything
-    root = logging.getLogger()
-    for h in list(root.handlers):
-        if isinstance(h, logging.FileHandler) and Path(h.baseFilename).resolve().is_relative_to(folder.resolve()):
-            root.removeHandler(h)
-            h.close()
+    for h in log_files_under(folder):
+        logging.getLogger().removeHandler(h)
+        h.close()
     shutil.rmtree(folder, ignore_errors=True)
 
 

@@ -98,8 +98,13 @@ def kill_when(args: list[str], outputs, ready: Callable[[], bool], timeout: floa
     proc = subprocess.Popen(
         [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
+    wait_until(proc, ready, timeout)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+
+
+def wait_until(proc: subprocess.Popen, ready: Callable[[], bool], timeout: float = 240) -> None:
+    """Poll until ``ready()`` holds, ``proc`` has exited or ``timeout`` seconds have passed."""
     deadline = time.time() + timeout
     while time.time() < deadline and proc.poll() is None and not ready():
         time.sleep(0.02)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()

@@ -306,6 +306,16 @@ def _resumable(cfg: DictConfig, ident: RunIdentity):
     return None, None
 
 
+def log_files_under(folder: Path) -> list[logging.FileHandler]:
+    """The root logger's file handlers that write inside ``folder``."""
+    folder = folder.resolve()
+    return [
+        h
+        for h in logging.getLogger().handlers
+        if isinstance(h, logging.FileHandler) and Path(h.baseFilename).resolve().is_relative_to(folder)
+    ]
+
+
 def adopt(launch_dir: Path, run_dir: Path) -> None:
     """Move what this launch wrote so far (Hydra's log and ``.hydra`` folder) from its own
     folder into ``run_dir/resumed/<time>/``, point the open log files there, and remove the
@@ -315,11 +325,7 @@ def adopt(launch_dir: Path, run_dir: Path) -> None:
         return
     target = run_dir / "resumed" / f"{time.strftime('%Y-%m-%d_%H-%M-%S')}_{os.getpid()}"
     target.mkdir(parents=True, exist_ok=True)
-    handlers = [
-        h
-        for h in logging.getLogger().handlers
-        if isinstance(h, logging.FileHandler) and Path(h.baseFilename).resolve().is_relative_to(launch_dir)
-    ]
+    handlers = log_files_under(launch_dir)
     for h in handlers:
         h.acquire()
         h.close()

@@ -73,18 +73,18 @@ class ResultLog:
                 _describe(theirs),
                 aside,
             )
-        if not self.path.exists():
-            for kept in sorted((self.path.parent / SET_ASIDE).glob(f"*/{self.owner_path.name}"), reverse=True):
-                if _read_owner(kept) == self.owner and (kept.parent / self.path.name).exists():
-                    os.replace(kept.parent / self.path.name, self.path)
-                    log.info("took back this run's own rows from %s", kept.parent)
-                    break
+        if not self.path.exists():  # this run's rows may have been set aside by another run
+            kept = (self.path.parent / SET_ASIDE).glob(f"*/{self.owner_path.name}")
+            mine = sorted((k for k in kept if _read_owner(k) == self.owner), reverse=True)
+            newest = next((k.parent for k in mine if (k.parent / self.path.name).exists()), None)
+            if newest is not None:
+                os.replace(newest / self.path.name, self.path)
+                log.info("took back this run's own rows from %s", newest)
+            for k in mine:  # taken back (or never held rows): no second copy left behind
+                k.unlink()
         tmp = self.owner_path.with_name(self.owner_path.name + f".tmp-{os.getpid()}")
         tmp.write_text(json.dumps(self.owner, sort_keys=True) + "\n")
         os.replace(tmp, self.owner_path)
-        for kept in (self.path.parent / SET_ASIDE).glob(f"*/{self.owner_path.name}"):
-            if _read_owner(kept) == self.owner:  # taken back: no second copy of its rows
-                kept.unlink()
         self._claimed = True
 
     def done(self) -> set[int]:

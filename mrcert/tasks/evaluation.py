@@ -20,7 +20,7 @@ from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import resolve_device
 from mrcert.infra.tasks import RunContext
-from mrcert.reporting.certify_log import ResultLog
+from mrcert.reporting.certify_log import COLUMNS, ResultLog
 
 
 def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards: int) -> list[int]:
@@ -67,10 +67,10 @@ def prepare(cfg: DictConfig) -> Evaluation:
     return Evaluation(bundle, samples, model, smoothed, indices, device, str(t.get("backend", "auto")))
 
 
-def result_log(ctx: RunContext, name: str, columns: list[str] | None = None) -> ResultLog:
+def result_log(ctx: RunContext, name: str, columns: list[str] = COLUMNS) -> ResultLog:
     """The run's per-image log ``name`` in its folder, owned by this run (rows of any other run
     found there are set aside, never adopted)."""
-    return ResultLog(ctx.output_dir / name, *([columns] if columns else []), owner=ctx.tracker.owner)
+    return ResultLog(ctx.output_dir / name, columns, owner=ctx.tracker.owner)
 
 
 def run_per_image(log: ResultLog, indices: list[int], work: Callable[[int], dict[str, Any]], desc: str) -> int:
