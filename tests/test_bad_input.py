@@ -108,6 +108,18 @@ ALLOWED = {
 }
 
 
+ROOM_DIAGONAL = math.sqrt(6**2 + 6**2 + 3.7**2)  # the synthetic MetaRoom: 6 m x 6 m, 3.7 m high
+
+
+def motion_in_scale(motion) -> bool:
+    """What a motion can represent (each key already allowed on its own): a rotation angle at
+    most pi, a translation within the room, and a certified-accuracy curve (up to 5 sigma or the
+    radius) of at most 100,000 radii."""
+    bound = math.pi if motion.axis.startswith("r") else ROOM_DIAGONAL
+    curve_points = max(5 * motion.sigma, motion.radius) / motion.radius_step
+    return max(motion.sigma, motion.radius) <= bound and curve_points <= 1e5
+
+
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(changes=st.dictionaries(st.sampled_from(KEYS), VALUES, min_size=1, max_size=4))
 def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, changes):
@@ -119,6 +131,8 @@ def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, ch
     shards = changes.get("task.num_shards", 1)
     if "task.shard" in changes and not bad and changes["task.shard"] >= shards:
         bad.add("task.shard")  # a shard outside [0, num_shards)
+    if not bad and not motion_in_scale(cfg.motion):
+        bad |= {"motion.sigma", "motion.radius", "motion.radius_step"}
     if bad:
         with pytest.raises(ConfigError) as info:
             validate(cfg)

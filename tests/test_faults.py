@@ -1,6 +1,7 @@
 """The store and the job runner survive kills, races and outages; bad inputs fail early."""
 
 import os
+import re
 import resource
 import signal
 import socket
@@ -18,7 +19,7 @@ from mrcert.__main__ import run_task
 from mrcert.errors import MrcertError
 from mrcert.infra.store import FileLock, ensure_sqlite_store
 from mrcert.reporting.certify_log import read_log
-from tests.conftest import ROOT, TINY, compose_cfg, kill_when, run_cli, start_cli
+from tests.conftest import ROOT, TINY, compose_cfg, kill_when, run_cli, start_cli, wait_until
 
 TIMING = ["time", "seconds"]
 
@@ -207,9 +208,7 @@ def test_ctrl_c_is_one_line_and_the_run_is_killed(checkpoints, tmp_path):
     """Issue 20, item 5: Ctrl-C during certification prints one line (no traceback), exits 130,
     and leaves the run KILLED for the same command to resume."""
     proc = start_cli(certify_args(checkpoints["a"], n=2000), tmp_path, interruptible=True)
-    deadline = time.time() + 240
-    while time.time() < deadline and not any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)):
-        time.sleep(0.05)
+    wait_until(proc, lambda: any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)))
     proc.send_signal(signal.SIGINT)
     err = proc.communicate(timeout=120)[1]
     assert proc.returncode == 130 and "Traceback" not in err, err[-2000:]
@@ -264,6 +263,25 @@ def test_bad_input_files_fail_before_any_run_exists(checkpoints, tmp_path):
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("mrcert: error: ") and "is not a mrcert checkpoint" in last
     assert not list((tmp_path / "runs" / "certify").glob("*")), "a refused launch left its folder behind"
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["motion=tz", "motion.sigma=1e9"], "sigma=1000000000.0 .* at most 9.26 m, the extent of the metaroom_synth"),
+        (["motion=rz", "motion.radius=4"], "motion.radius=4.0 .* a rotation angle in radians, at most pi"),
+        (["motion=tz", "motion.radius_step=1e-9"], "motion.radius_step=1e-09 .* would have more than 100000 radii"),
+    ],
+    ids=["translation beyond the scene", "rotation beyond pi", "curve too fine"],
+)
+def test_a_motion_the_scene_cannot_represent_is_refused_at_once(args, message, tmp_path):
+    """Issue 20, item 3: motion.sigma=1e9 used to certify for minutes, then fail allocating a
+    radius grid of 1.2 TiB (a FAILED run and a traceback)."""
+    t0 = time.time()
+    proc = run_cli(["task=certify", *args], tmp_path)
+    assert time.time() - t0 < 30 and proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert re.search(message, proc.stderr.strip().splitlines()[-1]), proc.stderr[-1000:]
+    assert not (tmp_path / "mlflow.db").exists() or store_runs(tmp_path) == []
 
 
 def _write_cloud(path: Path) -> None:

@@ -34,6 +34,7 @@ class Family:
     background: Callable[[DictConfig], list[tuple[np.ndarray, np.ndarray]]]
     object: Callable[[str, float], tuple[np.ndarray, np.ndarray]]
     max_camera_z: float | None
+    extent: float  # metres: the scene's largest dimension (its bounding box's diagonal)
 
 
 FAMILIES = {
@@ -42,9 +43,14 @@ FAMILIES = {
         lambda d: [metaroom.room(d.room_density, d.seed), metaroom.table(d.density)],
         metaroom.object_cloud,
         metaroom.CEILING_Z - 0.05,  # cameras stay 5 cm below the ceiling
+        float(np.hypot(np.hypot(2 * metaroom.HALF, 2 * metaroom.HALF), metaroom.CEILING_Z - metaroom.FLOOR_Z)),
     ),
     "tabletop_synth": Family(
-        tuple(tabletop.CLASSES), lambda d: [tabletop.table(d.room_density)], tabletop.shape_cloud, None
+        tuple(tabletop.CLASSES),
+        lambda d: [tabletop.table(d.room_density)],
+        tabletop.shape_cloud,
+        None,
+        float(np.hypot(tabletop.TABLE, tabletop.TABLE)),
     ),
 }
 
@@ -94,8 +100,9 @@ class SyntheticSource:
 
     def _held_out_set(self, name: str, label: int) -> PoseSet | None:
         """The ``test`` or ``validation`` poses of class ``label``: a ring (``ring: true``: ``per_class``
-        yaws evenly spread from ``yaw_start``) or drawn uniformly in the split's ranges; None when
-        the protocol has no such split."""
+        yaws evenly spread from ``yaw_start``) or drawn uniformly in the split's ranges, each of the
+        quantities in ``apart_from_test`` at least that far from every test pose's (never a test
+        pose); None when the protocol has no such split."""
         spec = self.data.protocol.get(name)
         if spec is None:
             return None
@@ -105,7 +112,9 @@ class SyntheticSource:
                 spec.per_class, (start, start + 360.0), spec.pitch, spec.roll, spec.radius, self._target()
             )
         rng = np.random.default_rng([self.data.seed, label, SPLITS.index(name)])
-        return sample_poses(spec.per_class, _ranges(spec), rng, target=self._target())
+        gaps = spec.get("apart_from_test")
+        apart = [(self._held_out_set("test", label).params, OmegaConf.to_container(gaps))] if gaps else []
+        return sample_poses(spec.per_class, _ranges(spec), rng, apart=apart, target=self._target())
 
     def _train_set(self, label: int) -> PoseSet:
         """Training poses, kept apart (``separation_rule``) from the test poses by ``separation`` and

@@ -160,8 +160,18 @@ def _unknown_keys(node: Any, prefix: str) -> Iterator[tuple[str, list[str]]]:
 
 
 TOP_LEVEL = (
-    *("task", "data", "profile", "train", "motion", "model", "attack", "tracking"),
-    *("paths", "seed", "device", "skip_finished"),
+    "task",
+    "data",
+    "profile",
+    "train",
+    "motion",
+    "model",
+    "attack",
+    "tracking",
+    "paths",
+    "seed",
+    "device",
+    "skip_finished",
 )
 """The root config's keys (conf/config.yaml and its groups); anything else at the top, such as
 a mistyped ``+seeed=1``, is refused instead of silently making a separate result."""
@@ -175,6 +185,44 @@ def _unknown_top_level(cfg: DictConfig) -> None:
             str(key),
             OmegaConf.select(cfg, str(key)),
             f"not a key of mrcert's config; {hint}its keys: {', '.join(TOP_LEVEL)}",
+        )
+
+
+CURVE_POINTS = 100_000
+"""The most radii a certified-accuracy curve may have (``5 sigma / radius_step``: CERTIFY's
+largest radius is 2.6 sigma at n = 1000 and under 5 sigma up to n = 10^6)."""
+
+
+def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
+    """Sigma and radius a motion can represent: a rotation angle is at most pi (a larger one is a
+    smaller rotation the other way), a translation at most the extent of a synthetic scene (a
+    camera moved further sees none of it), and the certified-accuracy curve has at most
+    ``CURVE_POINTS`` radii."""
+    from mrcert.data.synthetic import FAMILIES
+
+    sigma, radius, step = (motion.get(k) for k in ("sigma", "radius", "radius_step"))
+    if not all(_number(v) for v in (sigma, radius, step)) or step <= 0:
+        return  # reported by the per-key rules
+    family = FAMILIES.get(data.get("source"))
+    if motion.get("axes"):  # multi-axis: radii in sigma units, one sigma per axis
+        axes = zip(motion["axes"], motion["sigmas"], strict=False)
+        scales = [(f"motion.sigmas[{i}]", a, v) for i, (a, v) in enumerate(axes)]
+    else:
+        scales = [(f"motion.{k}", str(motion.get("axis")), v) for k, v in (("sigma", sigma), ("radius", radius))]
+    for key, axis, value in scales:
+        if axis.startswith("r") and value > math.pi:
+            raise ConfigError(key, value, "a rotation angle in radians, at most pi")
+        if axis.startswith("t") and family is not None and value > family.extent:
+            raise ConfigError(
+                key, value, f"at most {family.extent:.3g} m, the extent of the {data['source']} scene"
+            )
+    largest = max(5 * sigma, radius)
+    if largest / step > CURVE_POINTS:
+        raise ConfigError(
+            "motion.radius_step",
+            step,
+            f"at least {largest / CURVE_POINTS:.3g}: the certified-accuracy curve up to "
+            f"{largest:.6g} (5 sigma or the radius) would have more than {CURVE_POINTS} radii",
         )
 
 
@@ -203,6 +251,7 @@ def validate(cfg: DictConfig) -> None:
         if axis not in AXES or not _number(value) or value < 0:
             raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")
     motion = data.get("motion", {})
+    _motion_scale(motion, data.get("data", {}))
     if motion.get("axes"):
         from mrcert.core.smoothing import licensed
 
