@@ -19,6 +19,7 @@ from mrcert.core.projection import camera_points
 from mrcert.data.datasets import Augment, render_poses
 from mrcert.data.protocols import look_at_poses
 from mrcert.data.sources import load
+from mrcert.data.synthetic import FAMILIES
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.config import CONF_DIR, validate
 from mrcert.scenes import metaroom
@@ -99,17 +100,20 @@ def test_every_metaroom_training_pose_is_apart_from_every_test_pose_in_every_ang
 
 def test_metaroom_validation_poses_stand_to_the_training_poses_as_the_test_poses_do(tmp_path):
     """Selection poses: as far from every training pose in pitch and roll as the test poses (the
-    same pitch extrapolation and roll gap), 30 deg in yaw from every test pose (never a test pose),
-    and costing no training pose."""
+    same pitch extrapolation and roll gap), at yaws spread over the room but at least 15 deg from
+    every test yaw (never a test pose), and costing no training pose."""
     bundle = load(data_cfg("metaroom_synth", [*TINY, "data.protocol.train.per_class=300"], tmp_path))
     val, test, train = (pose_angles(bundle.split(s).poses) for s in ("validation", "test", "train"))
-    assert np.bincount(bundle.split("validation").labels).tolist() == [6, 6]
+    assert np.bincount(bundle.split("validation").labels).tolist() == [12, 12]
     gap = lambda a, b, q: np.abs(a[:, None, q] - b[None, :, q]).min(axis=1)  # nearest, per pose of a
-    for q in (1, 2):  # pitch, roll: the validation poses' gaps to the training poses are the test poses'
-        np.testing.assert_allclose(np.sort(gap(val, train, q)), np.sort(gap(test, train, q)), atol=1e-9)
+    for q in (1, 2):  # pitch, roll: every validation pose's gaps to the training poses are a test pose's
+        assert np.isin(gap(val, train, q).round(9), gap(test, train, q).round(9)).all()
         assert gap(val, train, q).min() >= 15 - 1e-9
-    d_yaw = np.abs((val[:, None, 0] - test[None, :, 0] + 180) % 360 - 180)
-    np.testing.assert_allclose(d_yaw.min(axis=1), 30.0, atol=1e-9)
+    np.testing.assert_allclose(val[:, 3], 2.8)
+    d_yaw = np.abs((val[:, None, 0] - test[None, :, 0] + 180) % 360 - 180).min(axis=1)
+    assert d_yaw.min() >= 15 - 1e-9 and d_yaw.max() - d_yaw.min() > 5  # not one angle per gap: varied backgrounds
+    windows = np.floor(((val[:, 0] + 360) % 360) / 60).astype(int)
+    assert len(set(windows)) == 6  # between every pair of neighbouring test yaws
     no_validation = [*TINY, "data.protocol.train.per_class=300", "~data.protocol.validation"]
     without = load(data_cfg("metaroom_synth", no_validation, tmp_path))
     assert not without.has_split("validation") and without.validation() is None
@@ -242,17 +246,17 @@ def write_release(root, classes=("apple", "bowl")):
 
 
 def test_metaroom_room_and_table_share_one_material():
-    """The paper's room gives walls, floor, ceiling and table one matte material (Roughcast), so
-    the floor behind the object at the training pitches and the wall behind it at the test pitch
-    look alike. Each surface's median colour, unshaded (divided by its Lambert factor), is the
-    same within the quantisation."""
+    """The paper's room gives walls, floor, ceiling and table one matte material (Roughcast).
+    Each surface's median colour, unshaded (divided by its Lambert factor), is the same within
+    the quantisation; the floor is measured around the rug, which is many colours."""
     from mrcert.scenes.textures import LIGHT
 
     points, colors = metaroom.room(0.05)
     table, table_colors = metaroom.table(0.05)
     half, top = metaroom.HALF, metaroom.CEILING_Z
+    beside_rug = np.abs(points[:, :2]).max(axis=1) > metaroom.RUG
     surfaces = {  # (points on the surface, its outward normal)
-        "floor": (np.isclose(points[:, 2], metaroom.FLOOR_Z), (0, 0, 1)),
+        "floor": (np.isclose(points[:, 2], metaroom.FLOOR_Z) & beside_rug, (0, 0, 1)),
         "ceiling": (np.isclose(points[:, 2], top), (0, 0, -1)),
         "north wall": (np.isclose(points[:, 1], half), (0, -1, 0)),
         "south wall": (np.isclose(points[:, 1], -half), (0, 1, 0)),
@@ -270,6 +274,17 @@ def test_metaroom_room_and_table_share_one_material():
     reference = albedo["floor"]
     for name, value in albedo.items():
         assert np.allclose(value, reference, atol=0.02), f"{name}: {value} vs floor {reference}"
+    rug = np.isclose(points[:, 2], metaroom.FLOOR_Z) & ~beside_rug
+    assert len(np.unique(np.round(colors[rug] * 10), axis=0)) >= 6  # a floor of many colours behind the object
+
+
+@pytest.mark.parametrize("name", ["metaroom_synth", "tabletop_synth"])
+def test_the_declared_scene_extent_is_the_scenes_diagonal(name, tmp_path):
+    """data.extent bounds every translation (validation); it must be the scene's own size."""
+    data = data_cfg(name, ["data.density=0.05", "data.room_density=0.05"], tmp_path)
+    points = np.concatenate([p for p, _ in FAMILIES[data.source].background(data)])
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    assert diagonal <= data.extent <= diagonal + 0.01
 
 
 def test_released_layout_loader(tmp_path):

@@ -133,6 +133,7 @@ def test_a_full_disk_while_creating_the_store_is_one_line(tmp_path):
     assert run_cli(args, tmp_path).returncode == 0
 
 
+@pytest.mark.slow  # over 20 s: make test-full
 def test_independent_jobs_started_together_on_a_new_store_all_finish(tmp_path):
     jobs = [
         start_cli(["task=render", "data=testscene", "data.density=0.05", "task.num=2", f"task.axes=[{axis}]"], tmp_path)

@@ -96,6 +96,7 @@ def test_a_smoke_run_or_other_settings_never_change_a_cell(store):
     assert certified["Tz / Smoothed Vanilla SmallCNN"] == full.sort_values("start_time").iloc[0]["run_id"]
 
 
+@pytest.mark.slow  # over 20 s: make test-full
 def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     out = tmp_path
     run(out, train_overrides("vanilla"), "train")
@@ -150,6 +151,7 @@ def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, 
     assert "ambiguous: 2 different finished runs" in notes[("Tz / Smoothed Augmented SmallCNN", "Certified Acc")]
 
 
+@pytest.mark.slow  # over 20 s: make test-full
 def test_table_3_of_the_released_metaroom_from_imported_logs(tmp_path):
     """The authors' logs, imported under the released data set, fill its Table 3 when the tables
     are built for that data set -- and never the synthetic MetaRoom's."""
@@ -352,10 +354,10 @@ def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_e
     client = mlflow.MlflowClient()
     runs = {r.data.tags["mrcert.task"] + "/" + r.data.tags.get("mrcert.variant", ""): r
             for r in mlflow.search_runs(search_all_experiments=True, output_format="list")}  # fmt: skip
-    assert runs["train/vanilla"].info.run_name == "train small_cnn vanilla"
-    assert runs["train/augmented"].info.run_name == "train tz small_cnn augmented"
-    assert runs["certify/vanilla"].info.run_name == "certify tz small_cnn vanilla"
-    assert runs["attack/vanilla"].info.run_name == "attack tz small_cnn vanilla k=5"
+    assert runs["train/vanilla"].info.run_name == "train vanilla small_cnn"
+    assert runs["train/augmented"].info.run_name == "train tz augmented small_cnn"
+    assert runs["certify/vanilla"].info.run_name == "certify tz vanilla small_cnn"
+    assert runs["attack/vanilla"].info.run_name == "attack tz vanilla small_cnn k=5"
     # The rendered data sets a model was trained and tested on, with their cache keys as digests.
     inputs = {(d.dataset.name, [t.value for t in d.tags][0]): d.dataset.digest
               for d in runs["train/vanilla"].inputs.dataset_inputs}  # fmt: skip

@@ -34,7 +34,6 @@ class Family:
     background: Callable[[DictConfig], list[tuple[np.ndarray, np.ndarray]]]
     object: Callable[[str, float], tuple[np.ndarray, np.ndarray]]
     max_camera_z: float | None
-    extent: float  # metres: the scene's largest dimension (its bounding box's diagonal)
 
 
 FAMILIES = {
@@ -43,14 +42,9 @@ FAMILIES = {
         lambda d: [metaroom.room(d.room_density, d.seed), metaroom.table(d.density)],
         metaroom.object_cloud,
         metaroom.CEILING_Z - 0.05,  # cameras stay 5 cm below the ceiling
-        float(np.hypot(np.hypot(2 * metaroom.HALF, 2 * metaroom.HALF), metaroom.CEILING_Z - metaroom.FLOOR_Z)),
     ),
     "tabletop_synth": Family(
-        tuple(tabletop.CLASSES),
-        lambda d: [tabletop.table(d.room_density)],
-        tabletop.shape_cloud,
-        None,
-        float(np.hypot(tabletop.TABLE, tabletop.TABLE)),
+        tuple(tabletop.CLASSES), lambda d: [tabletop.table(d.room_density)], tabletop.shape_cloud, None
     ),
 }
 

@@ -76,6 +76,7 @@ RULES: dict[str, Rule] = {
     "cx": (_number, "a finite number"),
     "cy": (_number, "a finite number"),
     "density": (_positive, "a finite number > 0 (metres)"),
+    "extent": (lambda v: v is None or _positive(v), "a finite number > 0 (metres), or null"),
     "num": (_positive_int, "an integer >= 1"),
     "k": (_positive_int, "an integer >= 1"),
     "axis": (_axis, f"one of {', '.join(AXES)} (or several joined by '+')"),
@@ -195,15 +196,13 @@ largest radius is 2.6 sigma at n = 1000 and under 5 sigma up to n = 10^6)."""
 
 def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
     """Sigma and radius a motion can represent: a rotation angle is at most pi (a larger one is a
-    smaller rotation the other way), a translation at most the extent of a synthetic scene (a
-    camera moved further sees none of it), and the certified-accuracy curve has at most
-    ``CURVE_POINTS`` radii."""
-    from mrcert.data.synthetic import FAMILIES
-
+    smaller rotation the other way), a translation at most the scene's extent where the data
+    set declares one (``data.extent``: a camera moved further sees none of it), and the
+    certified-accuracy curve has at most ``CURVE_POINTS`` radii."""
     sigma, radius, step = (motion.get(k) for k in ("sigma", "radius", "radius_step"))
     if not all(_number(v) for v in (sigma, radius, step)) or step <= 0:
         return  # reported by the per-key rules
-    family = FAMILIES.get(data.get("source"))
+    extent = data.get("extent")
     if motion.get("axes"):  # multi-axis: radii in sigma units, one sigma per axis
         axes = zip(motion["axes"], motion["sigmas"], strict=False)
         scales = [(f"motion.sigmas[{i}]", a, v) for i, (a, v) in enumerate(axes)]
@@ -212,10 +211,9 @@ def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
     for key, axis, value in scales:
         if axis.startswith("r") and value > math.pi:
             raise ConfigError(key, value, "a rotation angle in radians, at most pi")
-        if axis.startswith("t") and family is not None and value > family.extent:
-            raise ConfigError(
-                key, value, f"at most {family.extent:.3g} m, the extent of the {data['source']} scene"
-            )
+        if axis.startswith("t") and _number(extent) and value > extent:
+            scene = f"the extent of the {data.get('name')} scene (data.extent)"
+            raise ConfigError(key, value, f"at most {extent:.3g} m, {scene}")
     largest = max(5 * sigma, radius)
     if largest / step > CURVE_POINTS:
         raise ConfigError(

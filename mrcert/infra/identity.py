@@ -35,8 +35,9 @@ from omegaconf import DictConfig
 from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.infra.config import plain
 
-COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir")
-"""Where outputs go and how runs are tracked or scheduled: never part of a result."""
+COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent")
+"""Where outputs go and how runs are tracked or scheduled, and bounds that only validation
+reads (``data.extent``): never part of a result."""
 
 PARTITION = ("task.shard", "task.num_shards")
 """Keys that split one result over several runs (shards): in the run key, not in the cell key."""

@@ -139,6 +139,7 @@ class Synthetic:
     seed: int = MISSING
     density: float = MISSING
     room_density: float = MISSING
+    extent: float | None = None  # the scene's largest dimension (m): translations are bounded by it
     image: Camera = field(default_factory=Camera)
     protocol: Any = MISSING  # pose protocol: checked by validate (ranges, counts, gaps)
     crop: Crop = field(default_factory=Crop)
@@ -154,6 +155,7 @@ class Released:
     axis: str = MISSING
     variant: str = MISSING
     num_classes: int = MISSING
+    extent: float | None = None  # the scene's largest dimension (m): translations are bounded by it
     image: Camera = field(default_factory=Camera)
     crop: Crop = field(default_factory=Crop)
     downsample: bool = MISSING

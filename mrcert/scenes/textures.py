@@ -47,6 +47,31 @@ def roughcast(surface: Surface, seed: int) -> np.ndarray:
     return mottled(surface, ROUGHCAST, 0.06, 0.01, seed)
 
 
+RUG_PALETTE = np.array(
+    [
+        (0.62, 0.16, 0.12),  # madder red
+        (0.5, 0.33, 0.2),  # walnut
+        (0.16, 0.22, 0.45),  # indigo
+        (0.78, 0.6, 0.22),  # ochre
+        (0.22, 0.42, 0.26),  # green
+        (0.86, 0.8, 0.68),  # undyed wool
+        (0.5, 0.5, 0.52),  # grey
+        (0.3, 0.2, 0.12),  # dark brown
+    ]
+)
+
+
+def patchwork_rug(surface: Surface, half: float, seed: int, tile: float = 0.25, border: float = 0.15) -> np.ndarray:
+    """A square rug of side ``2 * half`` centred at the origin: ``tile``-sized squares of wool
+    colours picked by a hash of the square and ``seed``, inside a madder-red border."""
+    xy = surface.points[:, :2]
+    cell = np.floor((xy + half) / tile).astype(np.int64)
+    pick = (cell[:, 0] * 73856093 ^ cell[:, 1] * 19349663 ^ (seed + 1) * 83492791) % len(RUG_PALETTE)
+    colors = RUG_PALETTE[pick]
+    colors[np.abs(xy).max(axis=1) > half - border] = (0.45, 0.12, 0.1)
+    return colors * (1 + 0.06 * noise(surface.points, 0.01, seed)[:, None])
+
+
 def stripes(values: np.ndarray, period: float, color_a, color_b, duty: float = 0.5) -> np.ndarray:
     """Two colours alternating along ``values`` with the given period."""
     on = np.mod(values / period, 1.0) < duty
