@@ -55,6 +55,21 @@ def test_two_job_multirun_is_two_children_under_one_finished_parent(tmp_path):
     assert all(r.info.status == "FINISHED" and r.data.metrics["num_images"] == 4 for r in children)
 
 
+@pytest.mark.slow
+def test_a_sweep_over_tasks_is_one_parent_holding_every_job(tmp_path):
+    """Issue 22: `-m task=certify,smooth,attack` left an empty parent tagged with the default
+    task (its folder under multiruns/render/) while the jobs, finding no parent, were top-level."""
+    mrcert(["-m", "task=render,tables", "data=testscene", "data.density=0.05"], tmp_path)
+    all_runs = runs(tmp_path)
+    (parent,) = [r for r in all_runs if r.data.tags.get("mrcert.multirun") == "parent"]
+    assert parent.data.tags["mrcert.task"] == "render,tables" and parent.info.status == "FINISHED"
+    children = [r for r in all_runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
+    assert sorted(r.data.tags["mrcert.task"] for r in children) == ["render", "tables"]
+    assert len(all_runs) == 3
+    sweep = Path(parent.data.tags["mrcert.sweep_dir"])
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0_render", "1_tables"]
+
+
 def test_failing_job_marks_the_parent_failed_and_keeps_the_other_result(tmp_path):
     proc = mrcert(["-m", *FAST, "data.image.height=90,0"], tmp_path, check=False)
     assert proc.returncode != 0

@@ -158,7 +158,7 @@ def test_submitit_local_launcher(tmp_path):
 
 @pytest.mark.slow
 def test_the_postgresql_recipe_a_4_job_multirun_through_mlflow_server_and_its_table(postgres, tmp_path):
-    """The README's cluster recipe for real: PostgreSQL, `mlflow server` on it, a 4-job multirun
+    """The cluster recipe of docs/tracking.md for real: PostgreSQL, `mlflow server` on it, a 4-job multirun
     of evaluations through the server, and the table built from those runs."""
     from tests.test_tables import DEMO, SETTINGS
 

@@ -118,10 +118,11 @@ def ui_link_for(outputs: str, base: str, experiment: str = "mrcert") -> str:
 
 
 def run_name(cfg: DictConfig) -> str:
-    """What the run is, in words: ``certify tz resnet18 augmented``, ``render testscene``..."""
+    """What the run is, in words, what tells runs apart first (the runs page cuts long names):
+    ``certify tz augmented resnet18``, ``render testscene``..."""
     task = str(cfg.task.name)
     if task in ("train", "certify", "smooth", "attack"):
-        words = [task, str(cfg.motion.axis), str(cfg.model.arch), str(cfg.model.variant)]
+        words = [task, str(cfg.motion.axis), str(cfg.model.variant), str(cfg.model.arch)]
         if task == "train" and cfg.model.variant == "vanilla":
             words.remove(str(cfg.motion.axis))  # a vanilla model has no axis
         if task == "attack":
@@ -397,6 +398,12 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
         lock.release()
 
 
+def sweep_tasks(config: DictConfig) -> str:
+    """The task, or the comma-separated tasks, a multirun's jobs run (``task=certify,smooth``)."""
+    swept = [o.split("=", 1)[1] for o in config.hydra.overrides.task if o.split("=", 1)[0].lstrip("+") == "task"]
+    return swept[-1] if swept else str(config.task.name)
+
+
 class MultirunParentCallback(Callback):
     """Creates the experiment and a parent run before a multirun's jobs start, and closes
     it FINISHED (or FAILED when any child failed) when they are done."""
@@ -412,11 +419,12 @@ class MultirunParentCallback(Callback):
         client = configure(config.tracking).MlflowClient()
         sweep_dir = Path(config.hydra.sweep.dir)
         tags = run_tags(config) | {
+            "mrcert.task": sweep_tasks(config),
             "mrcert.multirun": "parent",
             "mrcert.sweep_dir": str(sweep_dir.resolve()),
             "mrcert.overrides": " ".join(config.hydra.overrides.task),
         }
-        run = client.create_run(experiment_id, tags=tags, run_name=f"sweep-{sweep_dir.name}")
+        run = client.create_run(experiment_id, tags=tags, run_name=f"sweep {tags['mrcert.task']} {sweep_dir.name}")
         sweep_dir.mkdir(parents=True, exist_ok=True)
         (sweep_dir / PARENT_FILE).write_text(json.dumps({"run_id": run.info.run_id, "experiment_id": experiment_id}))
         log.info("MLflow parent run %s for sweep %s", run.info.run_id, sweep_dir)
