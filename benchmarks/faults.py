@@ -41,7 +41,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-from tests.conftest import TINY  # noqa: E402 - the tests' tiny data and model, shared
+from tests.conftest import TINY, file_size_limit  # noqa: E402 - the tests' tiny data and model, the full-disk limit: shared
 
 TRAIN = [*TINY, "task=train", "train.epochs=6", "train.batch_size=8", "task.resume=true", "skip_finished=true"]
 
@@ -59,7 +59,7 @@ def certify(checkpoint: Path) -> list[str]:
     ]
 
 
-def mrcert(args: list[str], outputs: Path, env: dict) -> subprocess.Popen:
+def mrcert(args: list[str], outputs: Path, env: dict, preexec_fn=None) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "mrcert", *args],
         cwd=ROOT,
@@ -67,6 +67,7 @@ def mrcert(args: list[str], outputs: Path, env: dict) -> subprocess.Popen:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=preexec_fn,
     )
 
 
@@ -166,30 +167,17 @@ def simultaneous(work: Path, job: list[str], n: int, reference, env: dict) -> tu
 def disk_full(work: Path, job: list[str], reference, env: dict, limits_kib=(64, 256, 1024)) -> tuple[int, int, int]:
     """(results lost, extra runs, tracebacks) when the disk fills while a new store is created:
     each job runs under a file size limit (as a full disk is met), then again with room."""
-    import resource
-
     lost = extra = tracebacks = 0
     for kib in limits_kib:
-
-        def small_disk(kib=kib):
-            resource.setrlimit(resource.RLIMIT_FSIZE, (kib * 1024, kib * 1024))
-            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails instead of killing
-
         outputs = work / f"disk-full-{kib}k"
-        proc = subprocess.run(
-            [sys.executable, "-m", "mrcert", *job],
-            cwd=ROOT,
-            env=env | {"MRCERT_OUTPUTS": str(outputs)},
-            capture_output=True,
-            text=True,
-            preexec_fn=small_disk,
-        )
-        tracebacks += "Traceback" in proc.stderr
+        proc = mrcert(job, outputs, env, preexec_fn=file_size_limit(kib))
+        stderr = proc.communicate()[1]
+        tracebacks += "Traceback" in stderr
         finish(job, outputs, env)
         result, _, runs = outcome("certify", outputs)
         lost += not same("certify", result, reference)
         extra += len(runs) - 1
-        print(f"disk full at {kib} KiB: exit {proc.returncode}, {proc.stderr.strip().splitlines()[-1:]}", flush=True)
+        print(f"disk full at {kib} KiB: exit {proc.returncode}, {stderr.strip().splitlines()[-1:]}", flush=True)
     return lost, extra, tracebacks
 
 

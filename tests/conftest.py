@@ -1,4 +1,5 @@
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -67,12 +68,26 @@ def compose_cfg(overrides: list[str], outputs=None):
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_cli(args: list[str], outputs, timeout: int = 600) -> subprocess.CompletedProcess:
+def run_cli(
+    args: list[str], outputs, timeout: int = 600, preexec_fn: Callable[[], None] | None = None
+) -> subprocess.CompletedProcess:
     """``python -m mrcert ARGS`` writing under ``outputs``; output captured."""
     env = os.environ | {"MRCERT_OUTPUTS": str(outputs)}
+    cmd = [sys.executable, "-m", "mrcert", *args]
     return subprocess.run(
-        [sys.executable, "-m", "mrcert", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
+        cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout, preexec_fn=preexec_fn
     )
+
+
+def file_size_limit(kib: int) -> Callable[[], None]:
+    """A ``preexec_fn`` that caps every file the child writes at ``kib`` KiB: a write past it
+    fails (SIGXFSZ ignored) as it would on a full disk."""
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (kib * 1024, kib * 1024))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    return limit
 
 
 def start_cli(args: list[str], outputs, interruptible: bool = False) -> subprocess.Popen:

@@ -2,7 +2,6 @@
 
 import os
 import re
-import resource
 import signal
 import socket
 import subprocess
@@ -19,7 +18,7 @@ from mrcert.__main__ import run_task
 from mrcert.errors import MrcertError
 from mrcert.infra.store import FileLock, ensure_sqlite_store
 from mrcert.reporting.certify_log import read_log
-from tests.conftest import ROOT, TINY, compose_cfg, kill_when, run_cli, start_cli, wait_until
+from tests.conftest import ROOT, TINY, compose_cfg, file_size_limit, kill_when, run_cli, start_cli, wait_until
 
 TIMING = ["time", "seconds"]
 
@@ -116,14 +115,7 @@ def test_a_full_disk_while_creating_the_store_is_one_line(tmp_path):
     meets as a full disk would be met): one line naming the store and the fix, nothing half
     made left behind, and the same command works once there is room."""
     args = ["task=render", "data=testscene", "data.density=0.05", "task.num=2", "task.axes=[tx]"]
-
-    def small_disk():
-        resource.setrlimit(resource.RLIMIT_FSIZE, (200 * 1024, 200 * 1024))
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails instead of killing
-
-    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path)}
-    cmd = [sys.executable, "-m", "mrcert", *args]
-    full = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300, preexec_fn=small_disk)
+    full = run_cli(args, tmp_path, timeout=300, preexec_fn=file_size_limit(200))
     assert full.returncode == 2 and "Traceback" not in full.stderr, full.stderr[-2000:]
     db = tmp_path / "mlflow.db"
     line = full.stderr.strip().splitlines()[-1]

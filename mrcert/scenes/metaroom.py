@@ -82,9 +82,9 @@ def room(density: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     floor = rect([-HALF, -HALF, FLOOR_Z], [2 * HALF, 0, 0], [0, 2 * HALF, 0], d)
     ceiling = rect([-HALF, -HALF, CEILING_Z], [0, 2 * HALF, 0], [2 * HALF, 0, 0], d)
     walls = [_wall_item(wall, 0.0, FLOOR_Z, 2 * HALF, CEILING_Z - FLOOR_Z, d, depth=0.0) for wall in WALLS]
-    parts += [(s, roughcast(s, seed + 1 + i)) for i, s in enumerate([floor, ceiling, *walls])]
     on_rug = (np.abs(floor.points[:, :2]) < RUG).all(axis=1)
-    parts[0] = (floor, np.where(on_rug[:, None], patchwork_rug(floor, RUG, seed), parts[0][1]))
+    parts.append((floor, np.where(on_rug[:, None], patchwork_rug(floor, RUG, seed), roughcast(floor, seed + 1))))
+    parts += [(s, roughcast(s, seed + 2 + i)) for i, s in enumerate([ceiling, *walls])]
 
     # Door (north), window (east), blackboard (west), closets (south corners), clock (north).
     door = _wall_item("north", -1.6, FLOOR_Z, 0.9, 2.05, d, depth=0.01)
