@@ -32,21 +32,21 @@ install: $(STAMP) ## create .venv and install mrcert with its dependencies (idem
 demo: $(STAMP) ## quick pipeline: data, two small models, certify + attack a subset, print the table
 	$(MRCERT) -m experiment=demo task=train
 	$(MRCERT) -m experiment=demo task=certify,smooth,attack
-	$(MRCERT) task=tables task.experiment=demo
+	$(MRCERT) -m task=tables task.experiment=demo
 
 reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished work is skipped
 	for e in table3 table1 tabletop; do $(MRCERT) -m experiment=$$e profile=$(PROFILE) task=train || exit 1; done
 	$(MRCERT) -m experiment=table3 profile=$(PROFILE) task=certify,smooth,attack
 	$(MRCERT) -m experiment=table1 profile=$(PROFILE) task=smooth,attack
 	$(MRCERT) -m experiment=tabletop profile=$(PROFILE) task=smooth,attack
-	$(MRCERT) task=tables profile=$(PROFILE) task.show_paper=true
+	$(MRCERT) -m task=tables profile=$(PROFILE) task.show_paper=true
 
 results: $(STAMP) ## the evidence page docs/results.md: the quick model, six axes, all 120 test images (hours on 2 CPU cores)
 	$(MRCERT) -m experiment=results task=train
 	$(MRCERT) -m experiment=results task=certify,smooth,attack
 	$(MRCERT) -m experiment=results task=certify task.sequential=true
 	$(MRCERT) -m experiment=learning_curve task=train
-	$(MRCERT) task=tables task.experiment=results task.page=docs/results.md
+	$(MRCERT) -m task=tables task.experiment=results task.page=docs/results.md
 
 learning-curve: $(STAMP) ## the learning curve: a small CNN's test accuracy by training poses, separation rule, seed
 	$(MRCERT) -m experiment=learning_curve task=train

@@ -1,11 +1,13 @@
 """The entry point end to end: task runs land in MLflow with params, tags and artifacts."""
 
+import shlex
+import subprocess
 from pathlib import Path
 
 import mlflow
 import pytest
 
-from tests.conftest import run_cli
+from tests.conftest import TINY, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = ["task=render", "data=testscene", "data.density=0.03", "task.num=2", "task.axes=[tx,rz]"]
@@ -68,6 +70,36 @@ def test_a_sweep_over_tasks_is_one_parent_holding_every_job(tmp_path):
     assert len(all_runs) == 3
     sweep = Path(parent.data.tags["mrcert.sweep_dir"])
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0_render", "1_tables"]
+
+
+def make_recipe(target: str) -> list[list[str]]:
+    """The mrcert commands of a Makefile target, as ``make -n`` prints them (arguments only)."""
+    out = subprocess.run(
+        ["make", "-n", target, "MRCERT=:mrcert:", "STAMP="], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout
+    return [shlex.split(line)[1:] for line in out.splitlines() if line.startswith(":mrcert: ")]
+
+
+@pytest.mark.slow
+def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs(tmp_path):
+    """Issue 22: make demo's last step (task=tables) was a top-level run outside any sweep. The
+    demo's own recipe, on a tiny scene, and the runs page's view names metrics the runs log."""
+    from mrcert.infra.tracking import RUNS_VIEW_METRICS, ui_link_for
+
+    recipe = make_recipe("demo")
+    assert [c for c in recipe if "task=tables" in c], recipe
+    for command in recipe:
+        mrcert([*command, *([*TINY, "train.epochs=1"] if "task=tables" not in command else [])], tmp_path)
+    all_runs = runs(tmp_path)
+    parents = {r.info.run_id for r in all_runs if r.data.tags.get("mrcert.multirun") == "parent"}
+    children = [r.data.tags.get("mlflow.parentRunId") for r in all_runs if r.info.run_id not in parents]
+    assert len(parents) == len(recipe) and all(c in parents for c in children)
+    assert set(children) == parents  # no parent is empty
+    tasks = sorted(r.data.tags["mrcert.task"] for r in all_runs if r.info.run_id not in parents)
+    assert tasks == ["attack"] * 2 + ["certify"] * 2 + ["smooth"] * 2 + ["tables"] + ["train"] * 2
+    logged = set().union(*(r.data.metrics for r in all_runs))
+    assert set(RUNS_VIEW_METRICS) <= logged, set(RUNS_VIEW_METRICS) - logged
+    assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith("/runs?viewStateShareKey=mrcert")
 
 
 def test_failing_job_marks_the_parent_failed_and_keeps_the_other_result(tmp_path):

@@ -370,7 +370,7 @@ def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_e
     experiment = client.get_experiment(runs["certify/vanilla"].info.experiment_id)
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
     link = ui_link_for(str(store), "http://127.0.0.1:5000")
-    assert link == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs"
+    assert link == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs?viewStateShareKey=mrcert"
 
 
 def test_progress_is_a_log_line_every_few_seconds_when_nobody_watches(caplog):

@@ -77,8 +77,8 @@ def ensure_experiment(tracking: DictConfig) -> str:
     except Exception as exc:  # unreachable server, corrupt store
         raise MrcertError(f"cannot reach the MLflow store at {tracking.uri}: {exc}") from None
     if exp is not None:
-        if not all(exp.tags.get(k) == v for k, v in KIND.items()):
-            for k, v in KIND.items():
+        for k, v in EXPERIMENT_TAGS.items():
+            if exp.tags.get(k) != v:
                 client.set_experiment_tag(exp.experiment_id, k, v)
         return exp.experiment_id
     location = tracking.artifact_location
@@ -90,9 +90,11 @@ def ensure_experiment(tracking: DictConfig) -> str:
         db = sqlite_path(uri)
         with FileLock(db.with_name(f".{db.name}.lock")):
             exp = client.get_experiment_by_name(tracking.experiment)
-            return exp.experiment_id if exp else client.create_experiment(tracking.experiment, location, KIND)
+            if exp is not None:
+                return exp.experiment_id
+            return client.create_experiment(tracking.experiment, location, EXPERIMENT_TAGS)
     try:
-        return client.create_experiment(tracking.experiment, artifact_location=location, tags=KIND)
+        return client.create_experiment(tracking.experiment, artifact_location=location, tags=EXPERIMENT_TAGS)
     except Exception:  # another job created it in between (a server serialises creations)
         exp = client.get_experiment_by_name(tracking.experiment)
         if exp is None:
@@ -100,13 +102,42 @@ def ensure_experiment(tracking: DictConfig) -> str:
         return exp.experiment_id
 
 
-KIND = {"mlflow.experimentKind": "custom_model_development"}
-"""Tells MLflow's UI that the experiment holds runs (it then opens on them, not on GenAI traces)."""
+RUNS_VIEW_METRICS = (
+    "certified_accuracy",
+    "clean_accuracy",
+    "smoothed_benign_accuracy",
+    "smoothed_robust_accuracy",
+    "base_benign_accuracy",
+    "test_acc",
+    "mean_samples",
+)
+"""The headline metrics of certify, smooth, attack and train, in the order the runs page shows them."""
+
+RUNS_VIEW = "mrcert"
+"""Name of the runs page's view that :func:`ui_link` opens (MLflow's shared view state)."""
+
+_NAME_COLUMN = "attributes.`Run Name`"
+_VIEW_COLUMNS = [f"metrics.`{name}`" for name in RUNS_VIEW_METRICS]
+EXPERIMENT_TAGS = {
+    # MLflow's UI then opens the experiment on its runs, not on GenAI traces.
+    "mlflow.experimentKind": "custom_model_development",
+    # A view of the runs page (MLflow's "share view" mechanism: an experiment tag named by the
+    # view's key, opened with ``?viewStateShareKey=<key>``): the run name wide enough for task,
+    # axis, variant and model, then the headline metrics, with no horizontal scrolling.
+    f"mlflow.sharedViewState.{RUNS_VIEW}": json.dumps(
+        {
+            "selectedColumns": _VIEW_COLUMNS,
+            "columnOrder": [_NAME_COLUMN, *_VIEW_COLUMNS],
+            "columnWidths": {_NAME_COLUMN: 320},
+        }
+    ),
+}
+"""Tags every mrcert experiment carries (set on creation, restored when missing or changed)."""
 
 
 def ui_link(tracking: DictConfig, base: str) -> str:
-    """The MLflow UI page of the experiment's runs (``base``: where the UI is served)."""
-    return f"{base.rstrip('/')}/#/experiments/{ensure_experiment(tracking)}/runs"
+    """The MLflow UI page of the experiment's runs, in mrcert's view (``base``: where the UI is served)."""
+    return f"{base.rstrip('/')}/#/experiments/{ensure_experiment(tracking)}/runs?viewStateShareKey={RUNS_VIEW}"
 
 
 def ui_link_for(outputs: str, base: str, experiment: str = "mrcert") -> str:
