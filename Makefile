@@ -64,6 +64,7 @@ bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run 
 	$(PY) benchmarks/projection.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/certify.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/train.py --threads $(THREADS) --device $(DEVICE)
+	$(PY) benchmarks/sequential.py
 
 ui: $(STAMP) ## MLflow UI on the project's store, opened on the experiment's runs (PORT=... to change)
 	@$(PY) -c 'from mrcert.infra.tracking import ui_link_for; print("MLflow UI:", ui_link_for("$(abspath $(OUTPUTS))", "http://127.0.0.1:$(PORT)"))'

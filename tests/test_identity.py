@@ -110,6 +110,10 @@ def test_what_defines_a_result_and_what_does_not():
     assert key(set_key(vanilla, "motion.sigma", 0.3), "train").key == key(vanilla, "train").key
     assert key(set_key(augmented, "motion.sigma", 0.3), "train").key != key(augmented, "train").key
     assert key(set_key(vanilla, "train.lr", 0.5), "train").key != key(vanilla, "train").key
+    # Fixed-n CERTIFY has no looks; a sequential one is defined by them.
+    sequential = set_key(certify, "task.sequential", True)
+    assert key(set_key(certify, "task.look", 20)).key == key(certify).key
+    assert key(set_key(sequential, "task.look", 20)).key != key(sequential).key != key(certify).key
 
 
 @pytest.mark.parametrize("task", list(TASKS))

@@ -1,55 +1,22 @@
-"""The anytime-valid confidence sequence and the sequential certificate."""
+"""Sequential CERTIFY: its exact power against fixed-n CERTIFY's, its error rate, its cost."""
 
 import numpy as np
 import pytest
 import torch
-from scipy.stats import norm
+from scipy.stats import binom, norm
+from statsmodels.stats.proportion import proportion_confint
 
-from mrcert.core.sequential import BetaBinomialCS
-from mrcert.core.smoothing import (
-    SmoothedClassifier,
-    SmoothingDistribution,
-    image_generator,
-    lower_confidence_bound,
-)
+from mrcert.core.sequential import SequentialDesign
+from mrcert.core.smoothing import SmoothedClassifier, SmoothingDistribution, image_generator
 from tests.test_smoothing import Constant, tiny_sample
-
-
-def test_interval_contains_the_estimate_and_shrinks():
-    cs = BetaBinomialCS(0.01)
-    for s, t in ((50, 100), (990, 1000), (1, 10), (10, 10)):
-        assert cs.lower(s, t) <= s / t <= cs.upper(s, t)
-    assert cs.lower(0, 100) == 0.0 and cs.upper(100, 100) == 1.0
-    assert cs.lower(900, 1000) > cs.lower(90, 100)
-    # At the threshold the martingale equals 1 / alpha.
-    lo = cs.lower(900, 1000)
-    assert cs.log_martingale(900, 1000, lo) == pytest.approx(np.log(100), abs=1e-8)
-    # Anytime validity costs width: never tighter than the fixed-n Clopper-Pearson bound.
-    assert cs.lower(990, 1000) <= lower_confidence_bound(990, 1000, 0.01)
-
-
-@pytest.mark.parametrize("p", [0.6, 0.9, 0.99])
-def test_coverage_holds_at_every_look_simultaneously(p):
-    """Simulated Bernoulli streams: the fraction that ever leave the sequence stays below alpha."""
-    alpha, streams, looks = 0.05, 400, np.arange(25, 2001, 25)
-    rng = np.random.default_rng(int(p * 1000))
-    cs = BetaBinomialCS(alpha)
-    sums = np.cumsum(rng.random((streams, looks[-1])) < p, axis=1)[:, looks - 1]
-    missed = 0
-    for row in sums:
-        missed += any(
-            not (cs.lower(int(s), int(t)) <= p <= cs.upper(int(s), int(t))) for s, t in zip(row, looks, strict=True)
-        )
-    # Expected rate <= alpha; allow three binomial standard deviations of sampling error.
-    assert missed / streams <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / streams)
 
 
 class Simulated(SmoothedClassifier):
     """The smoothed classifier with its base votes simulated: class 1 with probability ``p``
-    per sample (no rendering), so the real stopping code runs on thousands of streams."""
+    per sample (no rendering), so the real CERTIFY code runs on thousands of streams."""
 
-    def __init__(self, p: float, seed: int):
-        super().__init__(None, SmoothingDistribution(("tz",), (1.0,)), 2)
+    def __init__(self, p: float, seed: int, sigma: float = 1.0):
+        super().__init__(None, SmoothingDistribution(("tz",), (sigma,)), 2)
         self.p, self.rng = p, np.random.default_rng(seed)
 
     def sample_counts(self, render, n, generator, center=None):
@@ -57,44 +24,89 @@ class Simulated(SmoothedClassifier):
         return np.array([n - ones, ones])
 
 
-def test_sequential_decision_error_rate_on_simulated_streams():
-    """Streams whose true p is just below what the radius needs: certifying it is an error."""
-    alpha, radius, look, n_max = 0.05, 1.0, 50, 3000
-    p_true = norm.cdf(radius) - 0.01
+def fixed_power(p: np.ndarray, n: int, alpha: float, need: float) -> np.ndarray:
+    """P(fixed-n CERTIFY certifies): P(Binomial(n, p) >= k) for the smallest count k whose
+    Clopper-Pearson lower bound (statsmodels' exact interval, one-sided) reaches ``need``."""
+    counts = np.arange(n + 1)
+    lower = proportion_confint(counts, n, alpha=2 * alpha, method="beta")[0]
+    k = int(counts[np.nan_to_num(lower) >= need][0])
+    return binom.sf(k - 1, n, p)
+
+
+@pytest.mark.parametrize(("ratio", "alpha"), [(0.5, 0.01), (1.0, 0.01), (2.0, 0.01), (1.0, 0.001)])
+def test_sequential_certifies_at_least_as_often_as_fixed_n_at_every_pa(ratio, alpha):
+    """Issue 21: the old anytime-valid sequence certified r = sigma with probability 0.32 at
+    pA = 0.88 where fixed n = 1000 does with 0.87. Exact power on a grid finer than the one the
+    design was planned on; the reference is fixed-n power from statsmodels' interval."""
+    need = norm.cdf(ratio)
+    design = SequentialDesign.plan(1000, alpha, need, 50)
+    grid = np.linspace(need, 1.0, 1999)[1:]
+    sequential, samples = design.operating(grid)
+    fixed = fixed_power(grid, 1000, alpha, need)
+    assert (sequential >= fixed - 0.01).all(), grid[np.argmin(sequential - fixed)]
+    # The exact probability of a wrong certificate at the threshold (and below it) is <= alpha.
+    below = np.linspace(0.5, need, 50)
+    assert (design.operating(below)[0] <= alpha).all()
+    # And it is cheap where most test images are: a confident base classifier.
+    assert design.operating(0.999)[1][0] <= (150 if ratio <= 1 else 600)
+    assert samples.max() <= design.n_max
+
+
+def test_the_exact_power_and_cost_agree_with_the_certify_code_on_simulated_streams():
+    """The dynamic programme against Monte Carlo through SmoothedClassifier.certify_sequential."""
+    alpha, radius, streams = 0.01, 1.0, 600
+    design = SequentialDesign.plan(1000, alpha, norm.cdf(radius), 50)
+    for p in (0.86, 0.9, 0.97):
+        certs = [
+            Simulated(p, seed).certify_sequential(None, 100, 1000, alpha, radius, 50, image_generator(0, seed))
+            for seed in range(streams)
+        ]
+        power, cost = design.operating(p)
+        certified = np.mean([c.prediction == 1 and c.radius >= radius for c in certs])
+        assert abs(certified - power[0]) <= 4 * np.sqrt(power[0] * (1 - power[0]) / streams) + 1e-9
+        drawn = np.array([c.n for c in certs], float)
+        assert abs(drawn.mean() - cost[0]) <= 4 * drawn.std() / np.sqrt(streams) + 1e-9
+
+
+def test_fixed_n_certify_matches_its_exact_power():
+    """The one-look design is fixed-n CERTIFY: Monte Carlo through SmoothedClassifier.certify."""
+    alpha, radius, p, streams = 0.01, 1.0, 0.86, 600
+    certified = np.mean(
+        [
+            Simulated(p, seed).certify(None, 100, 1000, alpha, image_generator(0, seed)).radius >= radius
+            for seed in range(streams)
+        ]
+    )
+    power = SequentialDesign.fixed(1000, alpha, norm.cdf(radius)).operating(p)[0][0]
+    assert power == pytest.approx(fixed_power(np.array(p), 1000, alpha, norm.cdf(radius)), abs=1e-12)
+    assert abs(certified - power) <= 4 * np.sqrt(power * (1 - power) / streams)
+
+
+@pytest.mark.parametrize("p", [norm.cdf(1.0), 0.9, 0.99])
+def test_the_reported_bound_exceeds_the_true_pa_with_probability_at_most_alpha(p):
+    """Monte Carlo type-I error: at the threshold (p = Phi(1)) certifying r = sigma is the
+    error; above it, a reported pA_lower above the true pA is (the radius would be too large).
+    alpha = 0.05 so that the error rate is measurable with 1,500 streams."""
+    alpha, streams = 0.05, 1500
     certs = [
-        Simulated(p_true, seed).certify_sequential(None, 100, n_max, alpha, radius, look, image_generator(0, seed))
-        for seed in range(400)
+        Simulated(p, seed).certify_sequential(None, 100, 1000, alpha, 1.0, 50, image_generator(0, seed))
+        for seed in range(streams)
     ]
-    errors = sum(c.prediction == 1 and c.radius >= radius for c in certs)
-    assert errors / 400 <= alpha
-    assert np.mean([c.n for c in certs]) < n_max  # it does stop early when the answer is clear ("cannot be reached")
+    errors = np.mean([c.prediction == 1 and c.p_a_lower > p for c in certs])
+    assert errors <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / streams)
 
 
-def test_sequential_certificates_follow_their_sequence_and_save_samples():
+def test_sequential_certificates_stop_at_the_first_look_on_a_sure_image_whatever_the_batch():
     dist = SmoothingDistribution(("tz",), (0.1,))
     smoothed, render = SmoothedClassifier(Constant(2), dist, 4, batch_size=64), tiny_sample().renderer()
-    cert = smoothed.certify_sequential(render, 100, 1000, 0.01, 0.1, 100, image_generator(0, 0))
-    cs = BetaBinomialCS(0.01)
-    assert cert.prediction == 2 and cert.count_a == cert.n and cert.n < 1000
-    assert cert.p_a_lower == cs.lower(cert.n, cert.n) and cert.radius == 0.1 * norm.ppf(cert.p_a_lower)
-    assert cert.radius >= 0.1  # it stopped because the requested radius was certified
+    cert = smoothed.certify_sequential(render, 100, 1000, 0.01, 0.1, 50, image_generator(0, 0))
+    design = SequentialDesign.plan(1000, 0.01, norm.cdf(1.0), 50)
+    assert cert.prediction == 2 and cert.count_a == cert.n == design.looks[0] == 50
+    assert cert.p_a_lower == pytest.approx(design.levels[0] ** (1 / 50), rel=1e-12)  # Clopper-Pearson at 50/50
+    assert cert.radius == pytest.approx(0.1 * norm.ppf(cert.p_a_lower), rel=1e-12) and cert.radius >= 0.1
     # Batch size does not change where it stops or what it returns.
     other = SmoothedClassifier(Constant(2), dist, 4, batch_size=7)
-    assert other.certify_sequential(render, 100, 1000, 0.01, 0.1, 100, image_generator(0, 0)) == cert
-
-
-def test_sequential_keeps_sampling_until_a_clear_margin_is_certified():
-    """Streams whose true p is clearly above what the radius needs (0.90 vs 0.84) are certified
-    at that radius: it stops on the lower confidence bound, never on the point estimate (which
-    clears the need at the first look while the bound does not yet)."""
-    alpha, radius, look, n_max = 0.05, 1.0, 50, 3000
-    certs = [
-        Simulated(0.9, seed).certify_sequential(None, 100, n_max, alpha, radius, look, image_generator(0, seed))
-        for seed in range(200)
-    ]
-    certified = [c.prediction == 1 and c.radius >= radius for c in certs]
-    assert np.mean(certified) >= 0.95
-    assert np.mean([c.n for c in certs]) < n_max / 2  # and still stops early
+    assert other.certify_sequential(render, 100, 1000, 0.01, 0.1, 50, image_generator(0, 0)) == cert
 
 
 class Noisy(torch.nn.Module):
@@ -110,10 +122,13 @@ class Noisy(torch.nn.Module):
         return out
 
 
-def test_sequential_abstains_or_stops_when_the_radius_is_out_of_reach():
+def test_sequential_stops_early_when_the_radius_is_out_of_reach():
     dist = SmoothingDistribution(("tz",), (0.1,))
     smoothed = SmoothedClassifier(Noisy(), dist, 2, batch_size=100)
-    cert = smoothed.certify_sequential(tiny_sample().renderer(), 100, 5000, 0.01, 0.25, 100, image_generator(0, 1))
-    cs = BetaBinomialCS(0.01)
-    assert cs.upper(cert.count_a, cert.n) < norm.cdf(2.5) and cert.n < 5000
-    assert cert.radius < 0.25
+    cert = smoothed.certify_sequential(tiny_sample().renderer(), 100, 1000, 0.01, 0.1, 50, image_generator(0, 1))
+    assert cert.n <= 100 and cert.radius < 0.1  # pA = 0.6 is far below Phi(1) = 0.84: no need to draw 1,000
+
+
+def test_a_design_refuses_looks_it_cannot_make():
+    with pytest.raises(ValueError, match="first look"):
+        SequentialDesign.plan(100, 0.01, 0.84, 500)

@@ -18,10 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from omegaconf import DictConfig
-from scipy.stats import beta, binomtest, norm
+from scipy.stats import binomtest, norm
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, compose
+from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
 from mrcert.errors import MrcertError
 
 ABSTAIN = -1
@@ -148,13 +149,6 @@ def image_generator(seed: int, index: int, *stream) -> torch.Generator:
     or sharding."""
     digest = hashlib.sha256("/".join(map(str, ("mrcert", seed, index, *stream))).encode()).digest()
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
-
-
-def lower_confidence_bound(count: int, n: int, alpha: float) -> float:
-    """One-sided (1 - alpha) Clopper-Pearson lower bound on a binomial proportion."""
-    if count <= 0:
-        return 0.0
-    return float(beta.ppf(alpha, count, n - count + 1))
 
 
 @dataclass
@@ -292,28 +286,28 @@ class SmoothedClassifier:
         return Certificate(c_a, self.distribution.radius(p_a), count_a, p_a, n)
 
     def certify_sequential(
-        self, render: Render, n0: int, n_max: int, alpha: float, radius: float, look: int, generator: torch.Generator
+        self, render: Render, n0: int, n: int, alpha: float, radius: float, first_look: int, generator: torch.Generator
     ) -> Certificate:
-        """CERTIFY with optional stopping, for a requested ``radius``.
+        """CERTIFY with early stopping, for a requested ``radius``, never less powerful than
+        :meth:`certify` with ``n`` samples.
 
-        After ``n0`` selection samples, estimation samples are drawn ``look`` at a time and the
-        anytime-valid confidence sequence of :mod:`mrcert.core.sequential` is checked after each
-        look: it stops once the lower bound reaches the probability that ``radius`` needs, or
-        once the upper bound shows that it never will, or at ``n_max``. The radius reported is
-        ``radius(lower bound at the stop)``, valid at that data-dependent time because the
-        sequence holds at all times at once (probability >= 1 - alpha). Looks are fixed in
-        number of samples, so the result does not depend on the batch size.
+        After ``n0`` selection samples, estimation samples are drawn up to the looks of the
+        :class:`~mrcert.core.sequential.SequentialDesign` planned for ``n``, ``alpha`` and the
+        probability the radius needs (looks at ``first_look``, doubling, and a last look at
+        ``n_max >= n``); it stops at the first look whose count certifies ``radius`` or shows
+        that it cannot be reached, and reports ``radius(pA_lower)`` with that look's bound.
+        With probability at least ``1 - alpha`` every look's bound holds, so the certificate
+        is valid at the data-dependent stop. Looks are fixed in number of samples, so the
+        result does not depend on the batch size.
         """
-        from mrcert.core.sequential import BetaBinomialCS
-
-        c_a = int(np.argmax(self.sample_counts(render, n0, generator)))
-        cs = BetaBinomialCS(alpha)
         need = max(self.distribution.probability_for(radius), 0.5)
-        count_a, t = 0, 0
-        while t < n_max:
-            m = min(look, n_max - t)
-            count_a += int(self.sample_counts(render, m, generator)[c_a])
-            t += m
-            if cs.lower(count_a, t) >= need or cs.upper(count_a, t) < need:
+        design = SequentialDesign.plan(n, alpha, need, first_look)
+        c_a = int(np.argmax(self.sample_counts(render, n0, generator)))
+        count_a, drawn = 0, 0
+        for k, look in enumerate(design.looks):
+            count_a += int(self.sample_counts(render, look - drawn, generator)[c_a])
+            drawn = look
+            stop, p_a = design.decide(count_a, k)
+            if stop:
                 break
-        return self._certificate(c_a, count_a, t, cs.lower(count_a, t))
+        return self._certificate(c_a, count_a, drawn, p_a)

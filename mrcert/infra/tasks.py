@@ -77,7 +77,7 @@ TASKS: dict[str, Task] = {
     "certify": Task(
         "mrcert.tasks.certify:run",
         "CERTIFY each test image of the smoothed classifier (certify.tsv)",
-        EVALUATION,
+        replace(EVALUATION, ignore_when=(("task.sequential", False, "task.look"),)),  # fixed n has no looks
         log="certify.tsv",
     ),
     "smooth": Task(
