@@ -261,11 +261,41 @@ def test_any_point_order_renders_the_images_of_the_original_order(backend, rng):
     local = projection.locality_order(pts, PAPER_K, 90, 160)
     assert not torch.equal(local, torch.arange(len(pts)))
     for perm in (shuffle, local):
-        images, depth = project(pts[perm], cols[perm], PAPER_K, motions, 90, 160, backend=backend, rank=perm)
-        assert torch.equal(images, reference[0]) and torch.equal(depth, reference[1])
+        for locality in (True, False):  # numba: sorted into locality order inside, or rendered as stored
+            images, depth = project(
+                pts[perm], cols[perm], PAPER_K, motions, 90, 160, backend=backend, rank=perm, locality=locality
+            )
+            assert torch.equal(images, reference[0]) and torch.equal(depth, reference[1])
     # Without the ranks the copies would win by storage order: the rule is what keeps the images.
     plain, _ = project(pts[shuffle], cols[shuffle], PAPER_K, motions, 90, 160, backend=backend)
     assert not torch.equal(plain, reference[0])
+
+
+def test_a_cloud_changed_between_renders_is_never_rendered_stale(rng):
+    """project() keeps each cloud's locality order for the next calls: changing the points, the
+    colours or the ranks in place, or passing other tensors, must give the new images."""
+    pts, cols = random_cloud(rng, n=5000)
+    motions = random_motions(rng, per_axis=2)
+    project(pts, cols, PAPER_K, motions, 90, 160)  # prepared and kept
+    pts.mul_(1.1)
+    assert torch.equal(
+        project(pts, cols, PAPER_K, motions, 90, 160)[1], project(pts.clone(), cols, PAPER_K, motions, 90, 160)[1]
+    )
+    cols.mul_(0.5)
+    assert torch.equal(
+        project(pts, cols, PAPER_K, motions, 90, 160)[0], project(pts, cols.clone(), PAPER_K, motions, 90, 160)[0]
+    )
+    rank = torch.arange(len(pts))
+    project(pts, cols, PAPER_K, motions, 90, 160, rank=rank)
+    rank.copy_(rank.flip(0))
+    fresh = project(pts, cols, PAPER_K, motions, 90, 160, rank=rank.clone())
+    assert torch.equal(project(pts, cols, PAPER_K, motions, 90, 160, rank=rank)[0], fresh[0])
+    # Another camera, the same tensors.
+    other_k = PAPER_K.clone()
+    other_k[0, 0] *= 0.8
+    assert torch.equal(
+        project(pts, cols, other_k, motions, 90, 160)[1], project(pts.clone(), cols, other_k, motions, 90, 160)[1]
+    )
 
 
 def test_a_test_sample_renders_the_images_of_its_cloud_as_given(rng):

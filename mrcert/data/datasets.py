@@ -99,11 +99,12 @@ def render_poses(
     pose_t = torch.from_numpy(np.asarray(poses, np.float64))
     if motions is not None:
         pose_t = pose_t @ motion_to_matrix(motions)
-    # The world frame is the reference camera, so a pose is the motion that reaches it.
+    # The world frame is the reference camera, so a pose is the motion that reaches it; poses are
+    # far from it, so the cloud is rendered in its own order, not in the reference camera's locality order.
     camera_motions = matrix_to_motion(pose_t)
     out = np.empty((len(poses), height, width, colors.shape[1]), np.uint8)
     for s in range(0, len(poses), batch):
-        imgs, _ = project(points, colors, K, camera_motions[s : s + batch], height, width, background)
+        imgs, _ = project(points, colors, K, camera_motions[s : s + batch], height, width, background, locality=False)
         out[s : s + batch] = to_uint8(imgs)
     return out
 

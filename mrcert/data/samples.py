@@ -3,11 +3,11 @@
 A :class:`TestSample` holds its scene ``V`` in the test pose's camera frame, the camera, and
 the label. Sound speed-ups:
 
-* the points that get rendered (the crop, or the whole cloud without one) are stored in
-  :func:`~mrcert.core.projection.locality_order` and rendered with their original positions as the
-  tie-break rank: the same images as the order they came in, at a
-  speed that does not depend on that order (a user's scan or a down-sampled cloud is
-  effectively shuffled; the sample is rendered 1,100 times, so sorting it once is free);
+* the same cloud tensors are rendered for every motion, so :func:`~mrcert.core.projection.project`
+  sorts each into locality order once and keeps it (a user's scan or a down-sampled cloud is
+  effectively shuffled; the sample is rendered 1,100 times, so sorting it once is free); the
+  crop keeps its points' positions in the whole cloud as their tie-break rank, so it renders
+  exactly the whole cloud's images;
 * an exact crop: the points that can land in the image under some motion within a
   :class:`CropBound`. Every other point stays outside the image for such motions, so removing
   it changes no image; motions beyond the bound are rendered from the full cloud.
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from mrcert.core.crop import CropBound
-from mrcert.core.projection import Backend, locality_order, project
+from mrcert.core.projection import Backend, project
 
 
 def downsample(points: np.ndarray, colors: np.ndarray, every_k: int, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -37,13 +37,6 @@ def downsample(points: np.ndarray, colors: np.ndarray, every_k: int, voxel: floa
     pts, cols = np.asarray(pcd.points), np.asarray(pcd.colors, dtype=np.float32)
     order = np.lexsort(pts.T[::-1])  # deterministic point order, whatever open3d's hashing did
     return pts[order], cols[order]
-
-
-def _in_locality_order(points, colors, rank, sample):
-    """``points``, ``colors`` and their ranks (positions in the cloud as given) in locality order."""
-    order = locality_order(points, sample.K, sample.height, sample.width)
-    rank = order if rank is None else rank[order]
-    return points[order].contiguous(), colors[order].contiguous(), rank
 
 
 @dataclass
@@ -60,10 +53,9 @@ class TestSample:
     label: int
     background: float = 1.0
     bound: CropBound | None = None
-    rank: torch.Tensor | None = field(default=None, repr=False)  # each stored point's position as given (None: its row)
-    crop_points: torch.Tensor | None = field(default=None, repr=False)  # the crop, in storage order
+    crop_points: torch.Tensor | None = field(default=None, repr=False)  # the crop, in the cloud's order
     crop_colors: torch.Tensor | None = field(default=None, repr=False)
-    crop_rank: torch.Tensor | None = field(default=None, repr=False)
+    crop_rank: torch.Tensor | None = field(default=None, repr=False)  # each crop point's row in the cloud
 
     @classmethod
     def build(
@@ -91,14 +83,11 @@ class TestSample:
             int(label),
             float(background),
         )
-        if bound is None:  # the whole cloud is what gets rendered: store it in locality order
-            sample.points, sample.colors, sample.rank = _in_locality_order(sample.points, sample.colors, None, sample)
-        else:  # the crop is what gets rendered (rarer motions use the whole cloud as given)
+        if bound is not None:  # the crop is what gets rendered (rarer motions use the whole cloud)
             mask = bound.mask(sample.points, sample.K, sample.height, sample.width)
             sample.bound = bound
-            sample.crop_points, sample.crop_colors, sample.crop_rank = _in_locality_order(
-                sample.points[mask], sample.colors[mask], torch.nonzero(mask).flatten(), sample
-            )
+            sample.crop_points, sample.crop_colors = sample.points[mask], sample.colors[mask]
+            sample.crop_rank = torch.nonzero(mask).flatten()
         return sample
 
     def within_bound(self, motions: torch.Tensor) -> torch.Tensor:
@@ -118,7 +107,7 @@ class TestSample:
         if bool(inside.all()):
             return self._project(self.crop_points, self.crop_colors, self.crop_rank, motions, backend)
         if not bool(inside.any()):
-            return self._project(self.points, self.colors, self.rank, motions, backend)
+            return self._project(self.points, self.colors, None, motions, backend)
         images = torch.empty(
             len(motions),
             self.colors.shape[1],
@@ -129,7 +118,7 @@ class TestSample:
         )
         depth = torch.empty(len(motions), self.height, self.width, dtype=torch.float64, device=self.points.device)
         crop = self._project(self.crop_points, self.crop_colors, self.crop_rank, motions[inside], backend)
-        full = self._project(self.points, self.colors, self.rank, motions[~inside], backend)
+        full = self._project(self.points, self.colors, None, motions[~inside], backend)
         (images[inside], depth[inside]), (images[~inside], depth[~inside]) = crop, full
         return images, depth
 
