@@ -290,6 +290,12 @@ def test_a_cloud_changed_between_renders_is_never_rendered_stale(rng):
     rank.copy_(rank.flip(0))
     fresh = project(pts, cols, PAPER_K, motions, 90, 160, rank=rank.clone())
     assert torch.equal(project(pts, cols, PAPER_K, motions, 90, 160, rank=rank)[0], fresh[0])
+    # Tensors made under inference mode have no version counter: rendered afresh, never stale.
+    with torch.inference_mode():
+        frozen = pts.clone()
+        first = project(frozen, cols, PAPER_K, motions, 90, 160)
+        frozen.mul_(0.9)
+        assert not torch.equal(project(frozen, cols, PAPER_K, motions, 90, 160)[1], first[1])
     # Another camera, the same tensors.
     other_k = PAPER_K.clone()
     other_k[0, 0] *= 0.8

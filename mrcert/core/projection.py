@@ -231,8 +231,11 @@ _PREPARED_LOCK = threading.Lock()
 
 def _prepared(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
     """The cloud in locality order (or as given), from the cache when these very tensors (same
-    versions) were prepared for this camera."""
+    versions) were prepared for this camera. Tensors made under ``torch.inference_mode`` have no
+    version counter, so a cloud holding one is prepared afresh at every call."""
     tensors = (points, colors, rank)
+    if any(isinstance(x, torch.Tensor) and x.is_inference() for x in tensors):
+        return _prepare(points, colors, rank, K, height, width, locality)
     key = (
         locality,
         *(id(x) for x in tensors),
@@ -249,6 +252,16 @@ def _prepared(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
         ):
             _PREPARED.move_to_end(key)
             return hit[1]
+    cloud = _prepare(points, colors, rank, K, height, width, locality)
+    refs = tuple(None if x is None else weakref.ref(x) for x in tensors)
+    with _PREPARED_LOCK:
+        _PREPARED[key] = (refs, cloud)
+        while len(_PREPARED) > PREPARED_CLOUDS:
+            _PREPARED.popitem(last=False)
+    return cloud
+
+
+def _prepare(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
     xyz = np.ascontiguousarray(points.to(torch.float64).numpy())
     dtype = colors.dtype if colors.is_floating_point() else torch.float32
     table = np.ascontiguousarray(colors.to(dtype).numpy())
@@ -259,13 +272,7 @@ def _prepared(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
         _gather(order, xyz, table, ranks, *stored)
         xyz, table, ranks = stored
     center, half = _block_bounds(xyz, BLOCK)
-    cloud = _Cloud(xyz, ranks, table, center, half, height, width)
-    refs = tuple(None if x is None else weakref.ref(x) for x in tensors)
-    with _PREPARED_LOCK:
-        _PREPARED[key] = (refs, cloud)
-        while len(_PREPARED) > PREPARED_CLOUDS:
-            _PREPARED.popitem(last=False)
-    return cloud
+    return _Cloud(xyz, ranks, table, center, half, height, width)
 
 
 def _check_inputs(points, colors, K, motions, height, width) -> None:

@@ -70,6 +70,13 @@ class TestSample:
         bound: CropBound | None = None,
         downsampling: tuple[int, float] | None = None,
     ) -> TestSample:
+        # Plain tensors even when built under torch.inference_mode (as the attack does): project()
+        # recognises a cloud it has sorted by the tensors' version counters, which only they have.
+        with torch.inference_mode(False):
+            return cls._build(points, colors, K, height, width, label, background, bound, downsampling)
+
+    @classmethod
+    def _build(cls, points, colors, K, height, width, label, background, bound, downsampling) -> TestSample:
         points, colors = np.asarray(points, np.float64), np.asarray(colors, np.float32)
         if downsampling is not None:
             points, colors = downsample(points, colors, *downsampling)
