@@ -66,6 +66,10 @@ def test_cells_hold_exactly_the_runs_of_their_config(store):
     certify = read_log(store / "runs" / "certify" / "certify.tsv")
     assert len(certify) == 2  # the demo's every 12th of 18 test images
     assert vanilla["Certified Acc"] == pytest.approx(((certify.correct == 1) & (certify.radius >= 0.1)).mean())
+    # The evidence page's version: both procedures' cost per image (no sequential run here: empty).
+    page = tables.certified_table(source(store), sequential=True).loc[("Tz", "Smoothed Vanilla SmallCNN")]
+    assert page["s per image"] == pytest.approx(certify.seconds.mean())
+    assert np.isnan(page["s per image, sequential"]) and np.isnan(page["Certified Acc, sequential"])
     assert vanilla["Benign Acc"] == pytest.approx(hand(store, "smooth", "smooth.tsv", "correct"))
     assert vanilla["5-pert Emp. Acc"] == pytest.approx(hand(store, "attack", "attack.tsv", "smoothed_robust"))
     # The augmented model is trained but never evaluated: its cells stay empty, never zero.

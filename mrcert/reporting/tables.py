@@ -43,6 +43,8 @@ CERTIFIED = Measure("certify", "certified_accuracy")
 # Sequential CERTIFY: an extra column beside the paper's fixed-n one, with its mean samples per image.
 SEQUENTIAL = Measure("certify", "certified_accuracy", ("task.sequential=true",))
 SEQUENTIAL_SAMPLES = Measure("certify", "mean_samples", ("task.sequential=true",))
+CERTIFY_SECONDS = Measure("certify", "seconds_per_image")
+SEQUENTIAL_SECONDS = Measure("certify", "seconds_per_image", ("task.sequential=true",))
 
 
 def base_benign(k: int) -> Measure:
@@ -161,7 +163,7 @@ def certified_table(
 ) -> pd.DataFrame:
     """Table 3: benign, 5-perturbed and certified accuracy (fixed-n CERTIFY, the paper's) of the
     smoothed models; with ``sequential``, sequential CERTIFY's certified accuracy and mean samples
-    per image as extra columns."""
+    per image as extra columns, and both procedures' seconds per image."""
     exp = src.experiment_for("table3")
     columns = (
         ("Benign Acc", SMOOTHED_BENIGN, ("smoothed", "benign", None)),
@@ -171,6 +173,8 @@ def certified_table(
         (
             ("Certified Acc, sequential", SEQUENTIAL, None),
             ("samples per image, sequential", SEQUENTIAL_SAMPLES, None),
+            ("s per image", CERTIFY_SECONDS, None),
+            ("s per image, sequential", SEQUENTIAL_SECONDS, None),
         )
         if sequential
         else ()
