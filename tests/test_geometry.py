@@ -60,3 +60,12 @@ def test_pose_motion_round_trip(rng):
 def test_unknown_axis_is_named():
     with pytest.raises(ValueError, match="'tw'.*tx, ty, tz, rx, ry, rz"):
         g.axis_index("tw")
+
+
+def test_each_axis_has_one_unit_and_unknown_axes_are_refused():
+    from mrcert.core.geometry import is_translation, unit
+
+    assert [unit(a) for a in ("tx", "ty", "tz", "rx", "ry", "rz")] == ["m"] * 3 + ["rad"] * 3
+    assert is_translation("tz") and not is_translation("rz")
+    with pytest.raises(ValueError, match="unknown motion axis 'yaw'"):
+        unit("yaw")

@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 from scipy.stats import binomtest, norm
 
 from mrcert.core.crop import CropBound
-from mrcert.core.geometry import axis_index, compose
+from mrcert.core.geometry import axis_index, compose, is_translation
 from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
 from mrcert.errors import MrcertError
 
@@ -99,7 +99,7 @@ class SmoothingDistribution:
         box = [0.0, 0.0, 0.0]
         rotation, axis = 0.0, None
         for a, s in zip(self.axes, self.sigmas, strict=True):
-            if a.startswith("t"):
+            if is_translation(a):
                 box[axis_index(a)] = sigmas * s
             else:
                 rotation, axis = sigmas * s, a
@@ -121,7 +121,7 @@ def licensed(axes: tuple[str, ...], sigmas: tuple[float, ...]) -> None:
     sigma, or neither. At most one rotation axis; each axis once.
     """
     name = "+".join(axes)
-    rotations = [a for a in axes if a.startswith("r")]
+    rotations = [a for a in axes if not is_translation(a)]
     if len(set(axes)) != len(axes) or len(rotations) > 1:
         raise MrcertError(
             f"smoothing over {name} is not licensed by Theorem 1: use each axis once and at most one rotation "

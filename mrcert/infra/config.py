@@ -18,7 +18,7 @@ from typing import Any
 
 from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 
-from mrcert.core.geometry import AXES
+from mrcert.core.geometry import AXES, is_translation
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.schema import register
 
@@ -209,9 +209,11 @@ def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
     else:
         scales = [(f"motion.{k}", str(motion.get("axis")), v) for k, v in (("sigma", sigma), ("radius", radius))]
     for key, axis, value in scales:
-        if axis.startswith("r") and value > math.pi:
+        if axis not in AXES:
+            continue  # reported by the per-key rules
+        if not is_translation(axis) and value > math.pi:
             raise ConfigError(key, value, "a rotation angle in radians, at most pi")
-        if axis.startswith("t") and _number(extent) and value > extent:
+        if is_translation(axis) and _number(extent) and value > extent:
             scene = f"the extent of the {data.get('name')} scene (data.extent)"
             raise ConfigError(key, value, f"at most {extent:.3g} m, {scene}")
     largest = max(5 * sigma, radius)

@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 from hydra.core.override_parser.overrides_parser import OverridesParser
 
+from mrcert.core.geometry import AXES, unit
 from mrcert.reporting import certify_log, paper_results
 from mrcert.reporting.cells import Cell, RunIndex, compose_config
 from mrcert.reporting.plots import Curve, curve_figure
@@ -318,7 +319,8 @@ def curves_figure(data: dict[str, dict[str, Curve]]):
     """The figure: one panel per axis (the paper's order), one curve per model."""
     order = [a for a in AXES_ORDER if a in data] + [a for a in data if a not in AXES_ORDER]
     panels = {AXIS_NAMES.get(a, a): data[a] for a in order} or {AXIS_NAMES[a]: {} for a in AXES_ORDER}
-    units = {AXIS_NAMES.get(a, a): "radius (m)" if a.startswith("t") else "radius (rad)" for a in [*order, *AXES_ORDER]}
+    # One axis: metres or radians; several axes (Theorem 1's combinations): radii in sigmas.
+    units = {AXIS_NAMES.get(a, a): f"radius ({unit(a) if a in AXES else 'sigmas'})" for a in [*order, *AXES_ORDER]}
     title = "Certified accuracy against radius" + ("" if data else " (no certify runs)")
     return curve_figure(panels, title, units)
 

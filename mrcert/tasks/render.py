@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mrcert.core.geometry import AXES, axis_index
+from mrcert.core.geometry import AXES, axis_index, is_translation
 from mrcert.data.cache import folder_size
 from mrcert.data.datasets import Augment
 from mrcert.data.sources import is_scene, load, load_scene
@@ -41,7 +41,7 @@ def motion_grid(axes: list[str], num: int, extent: dict[str, float]) -> tuple[to
 
 
 def motion_label(axis: str, value: float) -> str:
-    return f"{axis} {value:+.3f} m" if axis.startswith("t") else f"{axis} {torch.tensor(value).rad2deg():+.2f} deg"
+    return f"{axis} {value:+.3f} m" if is_translation(axis) else f"{axis} {torch.tensor(value).rad2deg():+.2f} deg"
 
 
 def _grid_sheet(images: torch.Tensor, axes: list[str], num: int, labels, path, title: str):
