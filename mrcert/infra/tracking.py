@@ -122,10 +122,13 @@ EXPERIMENT_TAGS = {
     # MLflow's UI then opens the experiment on its runs, not on GenAI traces.
     "mlflow.experimentKind": "custom_model_development",
     # A view of the runs page (MLflow's "share view" mechanism: an experiment tag named by the
-    # view's key, opened with ``?viewStateShareKey=<key>``): the run name wide enough for task,
-    # axis, variant and model, then the headline metrics, with no horizontal scrolling.
+    # view's key, opened with ``?viewStateShareKey=<key>``): every task run, the run name wide
+    # enough for task, axis, variant and model, then the headline metrics, no horizontal scrolling.
     f"mlflow.sharedViewState.{RUNS_VIEW}": json.dumps(
         {
+            # Task runs (a sweep's jobs and single runs) flat, without the sweeps' parent runs:
+            # MLflow shows a parent's runs only once it is expanded, by hand.
+            "searchFilter": "tags.`mrcert.multirun` != 'parent'",
             "selectedColumns": _VIEW_COLUMNS,
             "columnOrder": [_NAME_COLUMN, *_VIEW_COLUMNS],
             "columnWidths": {_NAME_COLUMN: 320},
@@ -406,7 +409,13 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
         if not lock.acquire(blocking=False):
             raise MrcertError(f"the run folder {output_dir} is held by another process ({lock.holder()})")
         tags = (
-            run_tags(cfg) | ident.tags() | {"mrcert.output_dir": str(output_dir.resolve()), "mrcert.machine": machine()}
+            run_tags(cfg)
+            | ident.tags()
+            | {
+                "mrcert.output_dir": str(output_dir.resolve()),
+                "mrcert.machine": machine(),
+                "mrcert.multirun": "job" if parent_id else "single",  # a sweep's parent: "parent"
+            }
         )
         run_ctx = mlflow.start_run(
             experiment_id=experiment_id, parent_run_id=parent_id, tags=tags, run_name=run_name(cfg)
