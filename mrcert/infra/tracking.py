@@ -122,13 +122,10 @@ EXPERIMENT_TAGS = {
     # MLflow's UI then opens the experiment on its runs, not on GenAI traces.
     "mlflow.experimentKind": "custom_model_development",
     # A view of the runs page (MLflow's "share view" mechanism: an experiment tag named by the
-    # view's key, opened with ``?viewStateShareKey=<key>``): every task run, the run name wide
-    # enough for task, axis, variant and model, then the headline metrics, no horizontal scrolling.
+    # view's key, opened with ``?viewStateShareKey=<key>``): the run name wide enough for task,
+    # axis, variant and model, then the headline metrics, with no horizontal scrolling.
     f"mlflow.sharedViewState.{RUNS_VIEW}": json.dumps(
         {
-            # Task runs (a sweep's jobs and single runs) flat, without the sweeps' parent runs:
-            # MLflow shows a parent's runs only once it is expanded, by hand.
-            "searchFilter": "tags.`mrcert.multirun` != 'parent'",
             "selectedColumns": _VIEW_COLUMNS,
             "columnOrder": [_NAME_COLUMN, *_VIEW_COLUMNS],
             "columnWidths": {_NAME_COLUMN: 320},
