@@ -97,8 +97,10 @@ def project(
     if backend not in ("numba", "torch"):
         raise ValueError(f"unknown projection backend {backend!r}; allowed: auto, numba, torch")
 
-    if rank is not None and tuple(torch.as_tensor(rank).shape) != (points.shape[0],):
-        raise ValueError(f"rank must have shape ({points.shape[0]},), got {tuple(rank.shape)}")
+    if rank is not None:
+        rank = torch.as_tensor(rank, device=device)  # the same tensor when given one (project() keeps its order)
+        if tuple(rank.shape) != (points.shape[0],):
+            raise ValueError(f"rank must have shape ({points.shape[0]},), got {tuple(rank.shape)}")
     R = rotvec_to_matrix(motions[:, 3:])
     t = motions[:, :3]
     intr = tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
@@ -106,10 +108,8 @@ def project(
         if device.type != "cpu":
             raise ValueError(f"the numba projection backend needs CPU tensors, got device {device}")
         return _project_numba(_prepared(points, colors, rank, K, height, width, locality), R, t, intr, background)
-    rank = torch.arange(points.shape[0], device=device) if rank is None else torch.as_tensor(rank, device=device)
-    winner, depth = _zbuffer_torch(
-        points.to(torch.float64), rank.to(torch.int64), R, t, intr, height, width, chunk_elements
-    )
+    rank = torch.arange(points.shape[0], device=device) if rank is None else rank.to(torch.int64)
+    winner, depth = _zbuffer_torch(points.to(torch.float64), rank, R, t, intr, height, width, chunk_elements)
     images = _gather_colors(colors, winner, background, height, width)
     return images, depth.view(-1, height, width)
 
@@ -265,7 +265,7 @@ def _prepare(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
     xyz = np.ascontiguousarray(points.to(torch.float64).numpy())
     dtype = colors.dtype if colors.is_floating_point() else torch.float32
     table = np.ascontiguousarray(colors.to(dtype).numpy())
-    ranks = np.arange(len(xyz)) if rank is None else np.ascontiguousarray(torch.as_tensor(rank).to(torch.int64))
+    ranks = np.arange(len(xyz)) if rank is None else np.ascontiguousarray(rank.to(torch.int64).numpy())
     if locality:
         order = locality_order(torch.from_numpy(xyz), K, height, width).numpy()
         stored = np.empty_like(xyz), np.empty_like(table), np.empty_like(ranks)

@@ -34,7 +34,7 @@ error rate grows with the number of looks; docs/method.md §6.)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 
 import numpy as np
 from scipy.signal import fftconvolve
@@ -129,9 +129,11 @@ class SequentialDesign:
     def n_max(self) -> int:
         return self.looks[-1]
 
+    @cached_property
     def critical(self) -> tuple[np.ndarray, np.ndarray]:
         """Per look: the smallest count that certifies (``t + 1`` when none) and the largest
-        count that stops for futility (-1 when none; never at the last look)."""
+        count that stops for futility (-1 when none; never at the last look). Computed once per
+        design."""
         certify, futile = [], []
         last = len(self.looks) - 1
         for k, (t, level) in enumerate(zip(self.looks, self.levels, strict=True)):
@@ -144,20 +146,16 @@ class SequentialDesign:
 
     def decide(self, count: int, k: int) -> tuple[bool, float]:
         """After look ``k`` with ``count`` successes: whether to stop, and the lower bound on pA."""
-        certify, futile = self._critical
+        certify, futile = self.critical
         stop = count >= certify[k] or count <= futile[k] or k == len(self.looks) - 1
         return bool(stop), lower_confidence_bound(count, self.looks[k], self.levels[k])
-
-    @property
-    def _critical(self) -> tuple[np.ndarray, np.ndarray]:
-        return _critical(self)
 
     def operating(self, p: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """Exact probability of certifying ``need`` and expected number of samples, at each ``pA``
         in ``p``: the distribution of the count is carried through the looks, each look
         removing the mass that stops there."""
         p = np.atleast_1d(np.asarray(p, dtype=float))
-        certify, futile = self._critical
+        certify, futile = self.critical
         alive = np.ones((len(p), 1))  # P(count = s, not stopped yet), s = 0..t
         certified, samples, previous = np.zeros(len(p)), np.zeros(len(p)), 0
         for k, t in enumerate(self.looks):
@@ -170,11 +168,6 @@ class SequentialDesign:
             alive = np.where(stops, 0.0, alive)
             previous = t
         return certified, samples
-
-
-@cache
-def _critical(design: SequentialDesign) -> tuple[np.ndarray, np.ndarray]:
-    return design.critical()
 
 
 def power_grid(need: float) -> np.ndarray:

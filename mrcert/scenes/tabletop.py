@@ -16,6 +16,7 @@ from mrcert.scenes.textures import finish, noise, rgb
 
 THICKNESS = 0.01
 SHAPE_COLOR = (0.15, 0.35, 0.8)
+TABLE = 1.0  # the table's side (m)
 
 
 def _polar(r_of_theta, n: int = 256) -> np.ndarray:
@@ -55,7 +56,7 @@ def _extrude(outline: np.ndarray, density: float) -> Surface:
 
 
 def table(density: float) -> tuple[np.ndarray, np.ndarray]:
-    top = rect([-0.5, -0.5, 0.0], [1.0, 0, 0], [0, 1.0, 0], density)
+    top = rect([-TABLE / 2, -TABLE / 2, 0.0], [TABLE, 0, 0], [0, TABLE, 0], density)
     grain = 1 + 0.1 * noise(top.points[:, :2] * [1, 6], 0.3, 31)
     return top.points, finish(top, rgb((0.78, 0.66, 0.5), len(grain)) * grain[:, None])
 
