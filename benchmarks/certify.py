@@ -1,16 +1,22 @@
-"""Seconds per certified image, split into projection, model and overhead, beside the model alone.
+"""Seconds per certified image, split into projection, model and overhead, beside the model alone;
+and the forward passes themselves, eager NCHW in batches of 200 (mrcert before) against the
+inference path the tasks use (channels-last weights, ``task.batch_size``) and, with
+``--compile``, torch.compile.
 
 ResNet-18 (20 classes; with ``--device cuda`` ResNet-18 and ResNet-50), 160x90, CERTIFY with
-n0 + n = 100 + 1000 in batches of 200 on a test sample of the quick synthetic MetaRoom (cropped
-for the axis's smoothing, exact), on the given threads or GPU; the reference is the same 1100
-forward passes on random images, measured in the same run. On CUDA the rendering of the next
-batch overlaps the model (as in the tasks) and the peak GPU memory is printed. Medians over
-repeats. Usage: python benchmarks/certify.py [--axis tz] [--threads 2] [--device cpu|cuda]
+n0 + n = 100 + 1000 in batches of ``task.batch_size`` on a test sample of the quick synthetic
+MetaRoom (cropped for the axis's smoothing, exact), on the given threads or GPU; the reference
+is the same 1100 forward passes on the sample's own renders, measured in the same run, and
+every variant of the forward passes must predict the same classes on them. On CUDA the
+rendering of the next batch overlaps the model (as in the tasks) and the peak GPU memory is
+printed. Medians over repeats.
+Usage: python benchmarks/certify.py [--axis tz] [--threads 2] [--device cpu|cuda] [--compile] [override ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import statistics
 import tempfile
@@ -27,6 +33,8 @@ def main() -> None:
     ap.add_argument("--profile", default="quick", choices=["quick", "paper"])
     ap.add_argument("--cprofile", action="store_true", help="print a cProfile of one certified image")
     ap.add_argument("--overlap", action="store_true", help="render the next batch while the model runs")
+    ap.add_argument("--compile", action="store_true", help="add torch.compile's forward passes (needs a C++ compiler)")
+    ap.add_argument("overrides", nargs="*", help="config overrides, e.g. task.batch_size=200 model.net.width=16")
     args = ap.parse_args()
     archs = (args.arch or ("resnet18,resnet50" if args.device == "cuda" else "resnet18")).split(",")
     for arch in archs:
@@ -49,12 +57,14 @@ def run(args, arch: str) -> None:
         cfg = compose(
             "config",
             overrides=[
+                "task=certify",
                 "data=metaroom_synth",
                 f"profile={args.profile}",
                 f"motion={args.axis}",
                 f"model={arch}",
                 "data.classes=[mug]",
                 f"paths.outputs={tempfile.mkdtemp()}",
+                *args.overrides,
             ],
         )
     bundle = load(cfg.data)
@@ -65,25 +75,31 @@ def run(args, arch: str) -> None:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda: no CUDA device here")
     overlap = args.overlap or device.type == "cuda"
-    model = for_inference(build_model(cfg.model, 20), device)
-    batches = [100] + [200] * 5  # n0 = 100, then n = 1000 in batches of 200
-    inputs = [torch.rand(b, 3, 90, 160, generator=torch.Generator().manual_seed(b)).to(device) for b in batches]
+    batch = int(cfg.task.batch_size)
+    eager = build_model(cfg.model, 20).to(device).eval()
+    model = for_inference(copy.deepcopy(eager), device)
+    motions = dist.sample(1100, image_generator(0, 0))
+    renders = sample.renderer()(motions).to(device)
 
     def sync():
         if device.type == "cuda":
             torch.cuda.synchronize()
 
     @torch.inference_mode()
-    def model_alone():
-        for x in inputs:
-            model(x).argmax(1)
+    def classes(net, size: int) -> torch.Tensor:
+        """The predicted classes of ``net`` on the 1100 renders, in batches of ``size``."""
+        out = torch.cat([net(renders[s : s + n]).argmax(1) for s, n in _starts(1100, size)])
         sync()
+        return out
+
+    def model_alone():
+        classes(model, batch)
 
     def certify():
         start = time.perf_counter()
         test_sample = samples[0]  # building the sample (cloud in the camera frame, crop) is per-image work
         built = time.perf_counter() - start
-        smoothed = SmoothedClassifier(model, dist, 20, 200, device, overlap=overlap)
+        smoothed = SmoothedClassifier(model, dist, 20, batch, device, overlap=overlap)
         smoothed.certify(test_sample.renderer(), 100, 1000, 0.01, image_generator(0, 0))
         total = time.perf_counter() - start
         return total, built, smoothed.votes.timings["render"], smoothed.votes.timings["model"]
@@ -107,7 +123,7 @@ def run(args, arch: str) -> None:
     print(
         f"{arch}, {args.axis} (sigma {dist.sigmas[0]}), {args.profile} MetaRoom sample: "
         f"{len(sample.points):,} points, {len(sample.crop_points):,} after the crop; "
-        f"n0 + n = 1100, batch 200, {where}{', overlapped rendering' if overlap else ''}, median of {args.repeats}"
+        f"n0 + n = 1100, batch {batch}, {where}{', overlapped rendering' if overlap else ''}, median of {args.repeats}"
     )
     print(f"{'':<34}{'seconds':>10}{'vs model alone':>16}")
     for name, value in (
@@ -125,6 +141,40 @@ def run(args, arch: str) -> None:
     )
     if device.type == "cuda":
         print(f"peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**20:.0f} MiB")
+    forward_passes(args, classes, eager, model, batch)
+
+
+def forward_passes(args, classes, eager, model, batch: int) -> None:
+    """The 1100 forward passes per variant, each timed against the tasks' path and checked to
+    predict the same classes."""
+    import torch
+
+    variants = [
+        ("eager, NCHW, batch 200 (before)", eager, 200),
+        ("channels-last, batch 200", model, 200),
+        (f"channels-last, batch {batch} (the tasks)", model, batch),
+    ]
+    compiled = ""
+    if args.compile:
+        start = time.perf_counter()
+        fast = torch.compile(model, dynamic=False)
+        classes(fast, batch)  # compiles once per batch shape
+        compiled = f"; torch.compile took {time.perf_counter() - start:.1f} s (once per batch shape)"
+        variants.append((f"torch.compile, batch {batch}", fast, batch))
+    expected = classes(model, batch)
+    print(f"\n1100 forward passes on the sample's renders, median of {args.repeats}{compiled}")
+    print(f"{'':<42}{'seconds':>10}{'speed-up vs eager':>19}{'same classes':>14}")
+    before = None
+    for name, net, size in variants:
+        seconds = statistics.median(_timed(lambda n=net, b=size: classes(n, b)) for _ in range(args.repeats))
+        before = before or seconds
+        same = bool(torch.equal(classes(net, size), expected))
+        print(f"{name:<42}{seconds:>10.3f}{before / seconds:>18.2f}x{'yes' if same else 'NO':>14}")
+
+
+def _starts(n: int, size: int) -> list[tuple[int, int]]:
+    """(start, length) of the batches of ``size`` covering ``n`` items."""
+    return [(s, min(size, n - s)) for s in range(0, n, size)]
 
 
 def _timed(fn) -> float:

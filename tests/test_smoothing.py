@@ -333,3 +333,26 @@ def test_overlapped_rendering_gives_the_same_votes():
     a = plain.sample_counts(tiny_sample().renderer(), 450, image_generator(0, 9))
     b = overlapped.sample_counts(tiny_sample().renderer(), 450, image_generator(0, 9))
     assert a.sum() == 450 and (a > 0).sum() > 1 and np.array_equal(a, b)
+
+
+def test_the_tasks_inference_path_predicts_the_classes_of_the_eager_model(trained, tmp_path):
+    """Channels-last weights in small batches (what certify, smooth and attack run) predict,
+    sample for sample, the classes of the trained model run eagerly in NCHW on a whole batch,
+    from scores equal up to float rounding (the tiny model is confident: its classes alone
+    would not tell a lossy path apart)."""
+    from mrcert.core.models import build_model
+    from mrcert.infra.checkpoints import read_checkpoint
+    from mrcert.tasks.evaluation import prepare
+
+    cfg = tiny_cfg(["task=certify", f"model.checkpoint={best(trained)}"], tmp_path)
+    ev = prepare(cfg)
+    eager = build_model(cfg.model, len(ev.bundle.classes)).eval()
+    eager.load_state_dict(read_checkpoint(best(trained))["model"])
+    batch = int(cfg.task.batch_size)
+    with torch.inference_mode():
+        for i in ev.indices[:3]:
+            images = ev.render(ev.samples[i])(ev.distribution.sample(100, image_generator(0, i)))
+            tasks = torch.cat([ev.model(images[s : s + batch]) for s in range(0, 100, batch)])
+            reference = eager(images.contiguous())
+            assert torch.equal(tasks.argmax(1), reference.argmax(1))
+            torch.testing.assert_close(tasks, reference, rtol=1e-5, atol=1e-5)
