@@ -1,5 +1,6 @@
 """The entry point end to end: task runs land in MLflow with params, tags and artifacts."""
 
+import json
 import shlex
 import subprocess
 from pathlib import Path
@@ -64,7 +65,8 @@ def test_a_sweep_over_tasks_is_one_parent_holding_every_job(tmp_path):
     mrcert(["-m", "task=render,tables", "data=testscene", "data.density=0.05"], tmp_path)
     all_runs = runs(tmp_path)
     (parent,) = [r for r in all_runs if r.data.tags.get("mrcert.multirun") == "parent"]
-    assert parent.data.tags["mrcert.task"] == "render,tables" and parent.info.status == "FINISHED"
+    assert parent.data.tags["mrcert.sweep_tasks"] == "render,tables" and parent.info.status == "FINISHED"
+    assert "mrcert.task" not in parent.data.tags  # the runs page groups by task: parents stay out of the groups
     children = [r for r in all_runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
     assert sorted(r.data.tags["mrcert.task"] for r in children) == ["render", "tables"]
     assert len(all_runs) == 3
@@ -84,7 +86,7 @@ def make_recipe(target: str) -> list[list[str]]:
 def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs(tmp_path):
     """Issue 22: make demo's last step (task=tables) was a top-level run outside any sweep. The
     demo's own recipe, on a tiny scene, and the runs page's view names metrics the runs log."""
-    from mrcert.infra.tracking import RUNS_VIEW_METRICS, ui_link_for
+    from mrcert.infra.tracking import EXPERIMENT_TAGS, RUNS_VIEW_METRICS, ui_link_for
 
     recipe = make_recipe("demo")
     assert [c for c in recipe if "task=tables" in c], recipe
@@ -101,6 +103,11 @@ def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs
     assert {r.data.tags["mrcert.multirun"] for r in all_runs if r.info.run_id not in parents} == {"job"}
     logged = set().union(*(r.data.metrics for r in all_runs))
     assert set(RUNS_VIEW_METRICS) <= logged, set(RUNS_VIEW_METRICS) - logged
+    # The view groups by a tag every task run carries and no parent does: the page lists every
+    # job in its task's group and gathers the parents in MLflow's collapsed "Additional runs".
+    (group,) = json.loads(EXPERIMENT_TAGS["mlflow.sharedViewState.mrcert"])["groupBy"]["groupByKeys"]
+    assert group["mode"] == "tag"
+    assert {r.info.run_id for r in all_runs if group["groupByData"] not in r.data.tags} == parents
     assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith("/runs?viewStateShareKey=mrcert")
 
 

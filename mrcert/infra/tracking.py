@@ -118,17 +118,28 @@ RUNS_VIEW = "mrcert"
 
 _NAME_COLUMN = "attributes.`Run Name`"
 _VIEW_COLUMNS = [f"metrics.`{name}`" for name in RUNS_VIEW_METRICS]
+RUNS_VIEW_GROUP = "mrcert.task"
+"""The tag the runs page groups by: every task run carries it, a sweep's parent does not (its
+tasks are ``mrcert.sweep_tasks``), so parents gather in MLflow's collapsed "Additional runs"."""
 EXPERIMENT_TAGS = {
     # MLflow's UI then opens the experiment on its runs, not on GenAI traces.
     "mlflow.experimentKind": "custom_model_development",
     # A view of the runs page (MLflow's "share view" mechanism: an experiment tag named by the
-    # view's key, opened with ``?viewStateShareKey=<key>``): the run name wide enough for task,
-    # axis, variant and model, then the headline metrics, with no horizontal scrolling.
+    # view's key, opened with ``?viewStateShareKey=<key>``): runs grouped by task, each group
+    # open and its runs listed (a sweep's jobs are otherwise hidden under their collapsed
+    # parent), certify runs first, the run name wide enough for task, axis, variant and model,
+    # then the headline metrics, with no horizontal scrolling.
     f"mlflow.sharedViewState.{RUNS_VIEW}": json.dumps(
         {
             "selectedColumns": _VIEW_COLUMNS,
             "columnOrder": [_NAME_COLUMN, *_VIEW_COLUMNS],
-            "columnWidths": {_NAME_COLUMN: 320},
+            "columnWidths": {_NAME_COLUMN: 320} | {f"metrics.`{m}`": 7 * len(m) + 24 for m in RUNS_VIEW_METRICS},
+            "groupBy": {
+                "aggregateFunction": "average",
+                "groupByKeys": [{"mode": "tag", "groupByData": RUNS_VIEW_GROUP}],
+            },
+            "orderByKey": _VIEW_COLUMNS[0],
+            "orderByAsc": False,
         }
     ),
 }
@@ -455,13 +466,15 @@ class MultirunParentCallback(Callback):
             sys.exit(2)
         client = configure(config.tracking).MlflowClient()
         sweep_dir = Path(config.hydra.sweep.dir)
-        tags = run_tags(config) | {
-            "mrcert.task": sweep_tasks(config),
+        tags = {k: v for k, v in run_tags(config).items() if k != RUNS_VIEW_GROUP} | {
+            "mrcert.sweep_tasks": sweep_tasks(config),
             "mrcert.multirun": "parent",
             "mrcert.sweep_dir": str(sweep_dir.resolve()),
             "mrcert.overrides": " ".join(config.hydra.overrides.task),
         }
-        run = client.create_run(experiment_id, tags=tags, run_name=f"sweep {tags['mrcert.task']} {sweep_dir.name}")
+        run = client.create_run(
+            experiment_id, tags=tags, run_name=f"sweep {tags['mrcert.sweep_tasks']} {sweep_dir.name}"
+        )
         sweep_dir.mkdir(parents=True, exist_ok=True)
         (sweep_dir / PARENT_FILE).write_text(json.dumps({"run_id": run.info.run_id, "experiment_id": experiment_id}))
         log.info("MLflow parent run %s for sweep %s", run.info.run_id, sweep_dir)
