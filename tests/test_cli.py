@@ -161,3 +161,28 @@ def test_render_a_point_cloud_file(tmp_path, suffix):
         [*FAST, "data=pointcloud", f"data.path={tmp_path / 'nope.ply'}", "tracking=off"], tmp_path, check=False
     )
     assert missing.returncode == 2 and "nope.ply" in missing.stderr and "does not exist" in missing.stderr
+
+
+def test_a_store_from_before_the_grouped_view_gets_its_parents_out_of_the_task_groups(tmp_path):
+    """Sweep parents an older mrcert wrote carry ``mrcert.task``, the tag the runs page groups
+    by; the first run against such a store moves it to ``mrcert.sweep_tasks`` and sets the view."""
+    from omegaconf import OmegaConf
+
+    from mrcert.infra.tracking import EXPERIMENT_TAGS, ensure_experiment
+
+    client = store(tmp_path)
+    old_view = {"mlflow.sharedViewState.mrcert": json.dumps({"selectedColumns": []})}
+    exp = client.create_experiment("mrcert", tags=old_view)
+    parent = client.create_run(exp, tags={"mrcert.task": "certify,smooth", "mrcert.multirun": "parent"})
+    job = client.create_run(exp, tags={"mrcert.task": "certify", "mrcert.multirun": "job"})
+    tracking = OmegaConf.create(
+        {"uri": f"sqlite:///{tmp_path / 'mlflow.db'}", "artifact_location": None, "experiment": "mrcert"}
+    )
+    assert ensure_experiment(tracking) == exp
+    moved = client.get_run(parent.info.run_id).data.tags
+    assert "mrcert.task" not in moved and moved["mrcert.sweep_tasks"] == "certify,smooth"
+    assert client.get_run(job.info.run_id).data.tags["mrcert.task"] == "certify"
+    assert (
+        client.get_experiment(exp).tags["mlflow.sharedViewState.mrcert"]
+        == EXPERIMENT_TAGS["mlflow.sharedViewState.mrcert"]
+    )

@@ -77,9 +77,11 @@ def ensure_experiment(tracking: DictConfig) -> str:
     except Exception as exc:  # unreachable server, corrupt store
         raise MrcertError(f"cannot reach the MLflow store at {tracking.uri}: {exc}") from None
     if exp is not None:
-        for k, v in EXPERIMENT_TAGS.items():
-            if exp.tags.get(k) != v:
-                client.set_experiment_tag(exp.experiment_id, k, v)
+        stale = {k: v for k, v in EXPERIMENT_TAGS.items() if exp.tags.get(k) != v}
+        if stale:  # a store an older mrcert wrote: its sweep parents carry the task tag the view groups by
+            _untag_parents(mlflow, exp.experiment_id)
+        for k, v in stale.items():
+            client.set_experiment_tag(exp.experiment_id, k, v)
         return exp.experiment_id
     location = tracking.artifact_location
     if location:
@@ -144,6 +146,20 @@ EXPERIMENT_TAGS = {
     ),
 }
 """Tags every mrcert experiment carries (set on creation, restored when missing or changed)."""
+
+
+def _untag_parents(mlflow, experiment_id: str) -> None:
+    """Move a sweep parent's :data:`RUNS_VIEW_GROUP` tag to ``mrcert.sweep_tasks`` (what parents
+    carry now), so that the runs page's groups hold task runs only."""
+    parents = mlflow.search_runs(
+        experiment_ids=[experiment_id],
+        filter_string=f"tags.`mrcert.multirun` = 'parent' and tags.`{RUNS_VIEW_GROUP}` != ''",
+        output_format="list",
+    )
+    client = mlflow.MlflowClient()
+    for run in parents:
+        client.set_tag(run.info.run_id, "mrcert.sweep_tasks", run.data.tags[RUNS_VIEW_GROUP])
+        client.delete_tag(run.info.run_id, RUNS_VIEW_GROUP)
 
 
 def ui_link(tracking: DictConfig, base: str) -> str:
