@@ -357,7 +357,8 @@ def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_e
     mlflow.set_tracking_uri(f"sqlite:///{store / 'mlflow.db'}")
     client = mlflow.MlflowClient()
     runs = {r.data.tags["mrcert.task"] + "/" + r.data.tags.get("mrcert.variant", ""): r
-            for r in mlflow.search_runs(search_all_experiments=True, output_format="list")}  # fmt: skip
+            for r in mlflow.search_runs(search_all_experiments=True, output_format="list")
+            if "mrcert.task" in r.data.tags}  # task runs; a sweep's parent has mrcert.sweep_tasks  # fmt: skip
     assert runs["train/vanilla"].info.run_name == "train vanilla small_cnn"
     assert runs["train/augmented"].info.run_name == "train tz augmented small_cnn"
     assert runs["certify/vanilla"].info.run_name == "certify tz vanilla small_cnn"
