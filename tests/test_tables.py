@@ -87,9 +87,17 @@ def test_a_smoke_run_or_other_settings_never_change_a_cell(store):
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.max=1"], "smoke")
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.alpha=0.3"], "alpha")
     run(store, [*DEMO, "task=smooth", "model.variant=vanilla", "task.max=1"], "smoke-smooth")
+    run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.sequential=true"], "sequential")
     after_src = source(store)
     after = tables.certified_table(after_src)
     pd.testing.assert_frame_equal(after, before)
+    # The page prints the sequential columns beside the fixed-n ones in the same format.
+    page = tables.certified_table(after_src, True, "page", sequential=True).loc[("Tz", "Smoothed Vanilla SmallCNN")]
+    sequential = read_log(store / "runs" / "sequential" / "certify.tsv")
+    at_radius = ((sequential.correct == 1) & (sequential.radius >= 0.1)).mean()
+    assert page["Certified Acc, sequential"] == f"{at_radius:.3f}"
+    assert page["samples per image, sequential"] == f"{sequential.n.mean():.1f}"
+    assert page["Certified Acc"].startswith(f"{before.loc[('Tz', 'Smoothed Vanilla SmallCNN'), 'Certified Acc']:.3f}")
     smoke = read_log(store / "runs" / "smoke" / "certify.tsv")
     assert len(smoke) == 1  # the smoke run exists and differs in size from the full one
     sources = after_src.sources("table3_certified")

@@ -171,11 +171,11 @@ def certified_table(
         ("5-pert Emp. Acc", robust("smoothed", 5), ("smoothed", "perturbed", 5)),
         ("Certified Acc", CERTIFIED, ("certified",)),
     ) + (
-        (
-            ("Certified Acc, sequential", SEQUENTIAL, None),
-            ("samples per image, sequential", SEQUENTIAL_SAMPLES, None),
-            ("s per image", CERTIFY_SECONDS, None),
-            ("s per image, sequential", SEQUENTIAL_SECONDS, None),
+        (  # columns the paper does not have, each with its printed format
+            ("Certified Acc, sequential", SEQUENTIAL, ".3f"),
+            ("samples per image, sequential", SEQUENTIAL_SAMPLES, ".1f"),
+            ("s per image", CERTIFY_SECONDS, ".2f"),
+            ("s per image, sequential", SEQUENTIAL_SECONDS, ".2f"),
         )
         if sequential
         else ()
@@ -187,8 +187,8 @@ def certified_table(
         rows[key] = {}
         for label, measure, paper in columns:
             value = src.value(name, key, label, [src.cell(exp, combo, measure)], measure.metric)
-            if paper is None:  # a column the paper does not have
-                rows[key][label] = value if not show_paper or np.isnan(value) else f"{value:.4g}"
+            if isinstance(paper, str):  # a column the paper does not have: ``paper`` is its format
+                rows[key][label] = value if not show_paper or np.isnan(value) else format(value, paper)
                 continue
             reported = (
                 paper_results.CERTIFIED.get((ax, a, v)) if paper == ("certified",) else paper_value(*paper, ax, a, v)
