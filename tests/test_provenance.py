@@ -11,6 +11,7 @@ from pathlib import Path
 import mlflow
 import pytest
 
+import mrcert
 from mrcert.__main__ import bind, run_task
 from mrcert.reporting.certify_log import read_log
 from tests.conftest import ROOT, TINY, compose_cfg, run_cli
@@ -69,6 +70,12 @@ def test_skip_finished_reuses_only_a_run_of_the_same_model_and_ignores_batch_siz
     digests = {r.data.tags["mrcert.checkpoint"] for r in done}
     assert len(digests) == 2 and all(d.startswith("sha256:") for d in digests)
     assert {r.data.params["model.checkpoint"] for r in done} == {str(best), str(last)}
+    # Each run records the code that made it: the version and, in a checkout, the commit.
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
+    recorded = {r.data.tags["mrcert.code_version"] for r in done}
+    assert len(recorded) == 1 and recorded.pop().split()[0] == mrcert.__version__
+    if head.returncode == 0:
+        assert all(f"git:{head.stdout.strip()}" in r.data.tags["mrcert.code_version"] for r in done)
 
 
 def test_a_run_held_by_a_live_process_is_never_resumed_and_a_killed_one_is(trained, tmp_path):

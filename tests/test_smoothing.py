@@ -351,7 +351,7 @@ def test_the_tasks_inference_path_predicts_the_classes_of_the_eager_model(traine
     batch = int(cfg.task.batch_size)
     with torch.inference_mode():
         for i in ev.indices[:3]:
-            images = ev.render(ev.samples[i])(ev.distribution.sample(100, image_generator(0, i)))
+            images = ev.render(ev.samples[i])(ev.method.sample(100, image_generator(0, i)))
             tasks = torch.cat([ev.model(images[s : s + batch]) for s in range(0, 100, batch)])
             reference = eager(images.contiguous())
             assert torch.equal(tasks.argmax(1), reference.argmax(1))

@@ -22,18 +22,18 @@ from scipy.stats import binomtest, norm
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, compose, is_translation
+from mrcert.core.method import ABSTAIN, Certificate, Method, Render
 from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
 from mrcert.errors import MrcertError
 
-ABSTAIN = -1
-"""The smoothed classifier's answer when it cannot decide at the requested confidence."""
 DECISIONS = ("predict", "vote")
 """How a smoothed prediction is decided from its votes (:meth:`SmoothedClassifier.decide`)."""
 
 
 @dataclass(frozen=True)
-class SmoothingDistribution:
-    """A zero-mean Gaussian over some motion components, one sigma each."""
+class SmoothingDistribution(Method):
+    """Camera motion smoothing (``method=motion``): a zero-mean Gaussian over some motion
+    components, one sigma each, that augments the training images and smooths the classifier."""
 
     axes: tuple[str, ...]
     sigmas: tuple[float, ...]
@@ -53,14 +53,6 @@ class SmoothingDistribution:
         if motion.get("axes"):
             return cls(tuple(motion.axes), tuple(float(s) for s in motion.sigmas))
         return cls((str(motion.axis),), (float(motion.sigma),))
-
-    @property
-    def name(self) -> str:
-        return "+".join(self.axes)
-
-    @property
-    def single(self) -> bool:
-        return len(self.axes) == 1
 
     def region(self) -> str:
         """What a certified radius R means for this distribution."""
@@ -85,6 +77,36 @@ class SmoothingDistribution:
     def probability_for(self, radius: float) -> float:
         """The ``pA`` lower bound that :meth:`radius` turns into ``radius`` (inverse of it)."""
         return float(norm.cdf(radius / self.sigmas[0] if self.single else radius))
+
+    def training_motions(self, n: int, seed: int) -> torch.Tensor:
+        """Each axis's motions from its own NumPy stream ``(seed, 1000 + axis index)``."""
+        motions = torch.zeros(n, 6, dtype=torch.float64)
+        for a, s in zip(self.axes, self.sigmas, strict=True):
+            rng = np.random.default_rng([seed, 1000 + axis_index(a)])
+            motions[:, axis_index(a)] = torch.from_numpy(rng.normal(0.0, s, n))
+        return motions
+
+    def training_key(self, seed: int) -> dict:
+        if self.single:  # the key single-axis augmentation has always had (its cached images stay valid)
+            return {"axis": self.axes[0], "sigma": self.sigmas[0], "seed": seed}
+        return {"axes": list(self.axes), "sigmas": list(self.sigmas), "seed": seed}
+
+    def views(self, render: Render, n: int, generator: torch.Generator, center: torch.Tensor | None):
+        """The view re-rendered under ``center o eps`` (Lemma 1): the camera moved by ``center``,
+        then by the noise in its own frame. On the one smoothed axis this is ``center + eps`` exactly."""
+        motions = self.sample(n, generator)
+        if center is not None:
+            center = center.to(torch.float64).reshape(1, 6)
+            moved = set(torch.nonzero(center[0]).flatten().tolist())
+            if self.single and moved <= {axis_index(self.axes[0])}:
+                motions = motions + center  # along the one smoothed axis composition is addition, exactly
+            else:
+                motions = compose(center.expand(n, 6), motions)
+        return render, motions
+
+    def certify(self, smoothed, render, n0, n, alpha, generator) -> Certificate:
+        """Cohen's CERTIFY at the test pose: the radius is the motion's (:meth:`radius`)."""
+        return smoothed.certify_view(render, n0, n, alpha, generator)
 
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """``n`` motions (n, 6) float64 drawn on CPU from ``generator``."""
@@ -151,21 +173,6 @@ def image_generator(seed: int, index: int, *stream) -> torch.Generator:
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
 
 
-@dataclass
-class Certificate:
-    prediction: int
-    radius: float
-    count_a: int
-    p_a_lower: float
-    n: int = 0  # estimation samples drawn (the sequential mode may stop early)
-
-
-Render = Callable[[torch.Tensor], torch.Tensor]
-"""What a smoothed classifier classifies: motions (B, 6) -> images (B, C, H, W). For camera motion
-smoothing it is a test sample re-rendered under each motion (:meth:`TestSample.renderer`);
-another smoothing method plugs in here."""
-
-
 class VoteCounter:
     """The base classifier's votes over the images of a :data:`Render`, in batches.
 
@@ -180,8 +187,9 @@ class VoteCounter:
         self.timings = {"render": 0.0, "model": 0.0}
 
     @torch.inference_mode()
-    def __call__(self, render: Render, motions: torch.Tensor) -> np.ndarray:
-        batches = [motions[s : s + self.batch_size] for s in range(0, len(motions), self.batch_size)]
+    def __call__(self, render: Callable[[torch.Tensor], torch.Tensor], inputs: torch.Tensor) -> np.ndarray:
+        """Votes over ``render(inputs)``, in batches (``inputs``: motions, or sample indices)."""
+        batches = [inputs[s : s + self.batch_size] for s in range(0, len(inputs), self.batch_size)]
         votes = np.zeros(self.num_classes, np.int64)
         with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
             pending = pool.submit(render, batches[0]) if pool and batches else None
@@ -202,9 +210,10 @@ class VoteCounter:
 
 
 class SmoothedClassifier:
-    """g(x) = argmax_c P(h(O(V, a o eps)) = c), eps ~ the smoothing distribution.
+    """g(x) = argmax_c P(h(O(V, a o eps)) = c), eps ~ the smoothing distribution (for camera
+    motion smoothing; another :class:`~mrcert.core.method.Method` draws other noisy views).
 
-    Built once from the base classifier ``h``, the distribution and the number of classes;
+    Built once from the base classifier ``h``, the method and the number of classes;
     :meth:`certify` and :meth:`predict` take the input: a :data:`Render` of the test sample's
     scene ``V``, and ``a`` is the motion it is looked at from (zero for the test pose).
     Guarantee (Cohen et al. 2019; Theorem 1 of the paper, for the combinations
@@ -218,29 +227,20 @@ class SmoothedClassifier:
     def __init__(
         self,
         base: torch.nn.Module,
-        distribution: SmoothingDistribution,
+        method: Method,
         num_classes: int,
         batch_size: int = 200,
         device: torch.device | str = "cpu",
         overlap: bool = False,
     ):
-        self.distribution = distribution
+        self.method = method
         self.votes = VoteCounter(base, num_classes, batch_size, device, overlap)
 
     def sample_counts(
         self, render: Render, n: int, generator: torch.Generator, center: torch.Tensor | None = None
     ) -> np.ndarray:
-        """Votes over ``n`` motions ``center o eps`` (Lemma 1): the camera moved by ``center``,
-        then by the noise in its own frame. On the one smoothed axis this is ``center + eps`` exactly."""
-        motions = self.distribution.sample(n, generator)
-        if center is not None:
-            center = center.to(torch.float64).reshape(1, 6)
-            moved = set(torch.nonzero(center[0]).flatten().tolist())
-            if self.distribution.single and moved <= {axis_index(self.distribution.axes[0])}:
-                motions = motions + center  # along the one smoothed axis composition is addition, exactly
-            else:
-                motions = compose(center.expand(n, 6), motions)
-        return self.votes(render, motions)
+        """Votes over the method's ``n`` noisy views after the camera motion ``center``."""
+        return self.votes(*self.method.views(render, n, generator, center))
 
     def predict(
         self,
@@ -272,18 +272,25 @@ class SmoothedClassifier:
         return int(top2[0])
 
     def certify(self, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
-        """CERTIFY: select the top class on ``n0`` samples, estimate its probability on ``n``
-        fresh samples, and certify ``radius(pA_lower)`` when ``pA_lower >= 1/2``."""
-        selection = self.sample_counts(render, n0, generator)
+        """The method's CERTIFY of the test sample (for motion smoothing :meth:`certify_view`)."""
+        return self.method.certify(self, render, n0, n, alpha, generator)
+
+    def certify_view(
+        self, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator, center=None
+    ) -> Certificate:
+        """Cohen's CERTIFY of the view after the camera motion ``center``: select the top class
+        on ``n0`` samples, estimate its probability on ``n`` fresh samples, and certify
+        ``method.radius(pA_lower)`` when ``pA_lower >= 1/2``."""
+        selection = self.sample_counts(render, n0, generator, center)
         c_a = int(np.argmax(selection))
-        count_a = int(self.sample_counts(render, n, generator)[c_a])
+        count_a = int(self.sample_counts(render, n, generator, center)[c_a])
         p_a = lower_confidence_bound(count_a, n, alpha)
         return self._certificate(c_a, count_a, n, p_a)
 
     def _certificate(self, c_a: int, count_a: int, n: int, p_a: float) -> Certificate:
         if p_a < 0.5:
             return Certificate(ABSTAIN, 0.0, count_a, p_a, n)
-        return Certificate(c_a, self.distribution.radius(p_a), count_a, p_a, n)
+        return Certificate(c_a, self.method.radius(p_a), count_a, p_a, n)
 
     def certify_sequential(
         self, render: Render, n0: int, n: int, alpha: float, radius: float, first_look: int, generator: torch.Generator
@@ -300,7 +307,7 @@ class SmoothedClassifier:
         is valid at the data-dependent stop. Looks are fixed in number of samples, so the
         result does not depend on the batch size.
         """
-        need = max(self.distribution.probability_for(radius), 0.5)
+        need = max(self.method.probability_for(radius), 0.5)
         design = SequentialDesign.plan(n, alpha, need, first_look)
         c_a = int(np.argmax(self.sample_counts(render, n0, generator)))
         count_a, drawn = 0, 0

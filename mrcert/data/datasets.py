@@ -2,7 +2,7 @@
 provides (the sources themselves: :mod:`mrcert.data.sources`). A :class:`DataBundle` has
 
 * ``train()`` / ``test()``: :class:`ImageSet` of rendered images (cached under
-  ``data.cache_dir``; training images optionally motion-augmented on one axis),
+  ``data.cache_dir``; training images optionally rendered under a method's training motions),
 * ``samples()``: :class:`SampleSet` of :class:`~mrcert.data.samples.TestSample`, which carry
   their cloud in the camera frame, ``K``, the image size and the label.
 """
@@ -21,7 +21,8 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset
 
 from mrcert.core.crop import CropBound
-from mrcert.core.geometry import axis_index, matrix_to_motion, motion_to_matrix
+from mrcert.core.geometry import matrix_to_motion, motion_to_matrix
+from mrcert.core.method import Method
 from mrcert.core.projection import camera_points, project, to_uint8
 from mrcert.data.cache import cached_arrays
 from mrcert.data.samples import TestSample
@@ -38,21 +39,6 @@ class Split:
 
     def __len__(self) -> int:
         return len(self.labels)
-
-
-@dataclass(frozen=True)
-class Augment:
-    """Motion augmentation of training images: a Gaussian motion on one axis."""
-
-    axis: str
-    sigma: float
-    seed: int = 0
-
-    def motions(self, n: int) -> torch.Tensor:
-        rng = np.random.default_rng([self.seed, 1000 + axis_index(self.axis)])
-        m = torch.zeros(n, 6, dtype=torch.float64)
-        m[:, axis_index(self.axis)] = torch.from_numpy(rng.normal(0.0, self.sigma, n))
-        return m
 
 
 class ImageSet(Dataset):
@@ -130,8 +116,8 @@ class DataBundle(ABC):
         return {} if crop is None else {"bound": crop}
 
     @abstractmethod
-    def train(self, augment: Augment | None = None) -> ImageSet:
-        """Training images (motion-augmented on one axis when ``augment`` is given)."""
+    def train(self, augment: Method | None = None, seed: int = 0) -> ImageSet:
+        """Training images, rendered under ``augment``'s training motions for ``seed`` when it has any."""
 
     @abstractmethod
     def test(self) -> ImageSet:
@@ -165,18 +151,19 @@ class PosedCloudData(DataBundle):
     def identity(self) -> dict[str, Any]:
         """Everything besides the split that determines the rendered images."""
 
-    def _images(self, name: str, augment: Augment | None) -> ImageSet:
+    def _images(self, name: str, augment: Method | None, seed: int = 0) -> ImageSet:
         split = self.split(name)
+        key = None if augment is None else augment.training_key(seed)
         spec = {
             "data": self.identity(),
             "split": name,
             "image": OmegaConf.to_container(self.data.image),
-            "augment": None if augment is None else vars(augment),
+            "augment": key,
         }
 
         def build() -> dict[str, np.ndarray]:
             images = np.empty((len(split), self.height, self.width, 3), np.uint8)
-            motions = augment.motions(len(split)) if augment is not None else None
+            motions = augment.training_motions(len(split), seed) if key is not None else None
             for label in np.unique(split.labels):
                 idx = np.nonzero(split.labels == label)[0]
                 images[idx] = render_poses(
@@ -190,7 +177,7 @@ class PosedCloudData(DataBundle):
                 )
             return {"images": images, "labels": split.labels, "poses": split.poses}
 
-        tag = name if augment is None else f"{name}-{augment.axis}-aug"
+        tag = name if key is None else f"{name}-{augment.name}-aug"
         arrays, folder, hit = cached_arrays(Path(self.data.cache_dir), f"{self.data.name}-{tag}", spec, build)
         self.cache_info[tag] = {
             "folder": str(folder),
@@ -200,8 +187,8 @@ class PosedCloudData(DataBundle):
         }
         return ImageSet(arrays["images"], arrays["labels"], self.classes)
 
-    def train(self, augment: Augment | None = None) -> ImageSet:
-        return self._images("train", augment)
+    def train(self, augment: Method | None = None, seed: int = 0) -> ImageSet:
+        return self._images("train", augment, seed)
 
     def test(self) -> ImageSet:
         return self._images("test", None)

@@ -21,8 +21,9 @@ from PIL import Image
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import matrix_to_motion
+from mrcert.core.method import Method
 from mrcert.core.projection import camera_points
-from mrcert.data.datasets import Augment, DataBundle, ImageSet, SampleSet
+from mrcert.data.datasets import DataBundle, ImageSet, SampleSet
 from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
 
@@ -82,8 +83,8 @@ class ReleasedMetaRoom(DataBundle):
         if not self.classes:
             raise MrcertError(f"no class folders under {split_dir}")
 
-    def train(self, augment: Augment | None = None) -> ImageSet:
-        if augment is not None:
+    def train(self, augment: Method | None = None, seed: int = 0) -> ImageSet:
+        if augment is not None and augment.training_key(seed) is not None:
             raise MrcertError("released MetaRoom images are pre-rendered: choose data.variant=augmented instead")
         return ImageSet(*_image_folder(self.folder / "train", self.classes), self.classes)
 

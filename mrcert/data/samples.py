@@ -103,9 +103,16 @@ class TestSample:
             return torch.zeros(len(motions), dtype=torch.bool)
         return self.bound.contains(motions)
 
-    def renderer(self, backend: Backend = "auto"):
+    def renderer(self, backend: Backend = "auto") -> SampleRenderer:
         """The sample as a smoothed classifier sees it: motions (B, 6) -> images (B, C, H, W)."""
-        return lambda motions: self.render(motions, backend)[0]
+        return SampleRenderer(self, backend)
+
+    def cloud_for(self, motions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points and colours holding every point that can land in the image for a motion
+        within the bound of ``motions``: the crop when the bound holds them all, else the cloud."""
+        if bool(self.within_bound(torch.as_tensor(motions, dtype=torch.float64).reshape(-1, 6)).all()):
+            return self.crop_points, self.crop_colors
+        return self.points, self.colors
 
     def render(self, motions, backend: Backend = "auto") -> tuple[torch.Tensor, torch.Tensor]:
         """``O(V, alpha)`` for motions (B, 6): images (B, C, H, W) and depth (B, H, W)."""
@@ -133,3 +140,15 @@ class TestSample:
         return project(
             points, colors, self.K, motions, self.height, self.width, self.background, backend=backend, rank=rank
         )
+
+
+@dataclass(frozen=True)
+class SampleRenderer:
+    """:meth:`TestSample.renderer`: a callable ``motions -> images`` that also names its sample
+    (a method that reasons about the cloud itself, such as pixel-wise smoothing, reads it)."""
+
+    sample: TestSample
+    backend: Backend = "auto"
+
+    def __call__(self, motions: torch.Tensor) -> torch.Tensor:
+        return self.sample.render(motions, self.backend)[0]

@@ -111,6 +111,8 @@ RULES: dict[str, Rule] = {
     "num_shards": (_positive_int, "an integer >= 1"),
     "crop_sigmas": (_positive, "a finite number > 0"),
     "look": (_positive_int, "an integer >= 1"),
+    "frames": (lambda v: _positive_int(v) and v >= 2, "an integer >= 2"),
+    "half_width": (_positive, "a finite number > 0 (the motion's unit)"),
     "sigmas": (
         lambda v: isinstance(v, list) and len(v) > 0 and all(_positive(x) for x in v),
         "a non-empty list of finite numbers > 0",
@@ -166,6 +168,7 @@ TOP_LEVEL = (
     "profile",
     "train",
     "motion",
+    "method",
     "model",
     "attack",
     "tracking",
@@ -226,6 +229,23 @@ def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
         )
 
 
+def _method(data: dict) -> None:
+    """The method is one mrcert has, and what a task asks of it is something it does."""
+    from mrcert.core.methods import METHODS
+
+    name = data.get("method", {}).get("name", "motion")
+    if name not in METHODS:
+        raise ConfigError("method.name", name, f"one of {', '.join(METHODS)}")
+    if name == "pixelwise" and data.get("motion", {}).get("axes"):
+        raise ConfigError(
+            "motion", data["motion"].get("axis"), "one axis: method=pixelwise certifies an interval on one"
+        )
+    if name == "pixelwise" and data.get("task", {}).get("sequential"):
+        raise ConfigError(
+            "task.sequential", True, "false with method=pixelwise (sequential CERTIFY is motion smoothing's)"
+        )
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded)."""
     _unknown_top_level(cfg)
@@ -259,6 +279,7 @@ def validate(cfg: DictConfig) -> None:
             licensed(tuple(motion["axes"]), tuple(motion.get("sigmas") or ()))
         except (MrcertError, ValueError) as exc:
             raise ConfigError("motion.axes", motion["axes"], str(exc)) from None
+    _method(data)
     device = data.get("device", "auto")
     if not (
         device in ("auto", "cpu", "cuda")

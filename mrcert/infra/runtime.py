@@ -1,6 +1,10 @@
-"""Run-time choices shared by tasks: the device, and a description of the machine."""
+"""Run-time choices shared by tasks: the device, and a description of the machine and the code."""
 
 from __future__ import annotations
+
+import functools
+import subprocess
+from pathlib import Path
 
 import torch
 
@@ -15,6 +19,28 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise MrcertError(f"device={name!r} asks for CUDA but none is available; use device=cpu or device=auto")
     return device
+
+
+@functools.cache
+def code_version() -> str:
+    """mrcert's version and, run from a git checkout, its commit (``+dirty`` when tracked files
+    differ from it): ``0.1.0 git:1f02dea...`` or ``0.1.0`` for an installed copy."""
+    from mrcert import __version__
+
+    root = Path(__file__).resolve().parents[2]
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD") if (root / ".git").exists() else None
+    if not commit:
+        return __version__
+    dirty = git("status", "--porcelain", "--untracked-files=no")
+    return f"{__version__} git:{commit}{'+dirty' if dirty else ''}"
 
 
 def machine() -> str:

@@ -45,11 +45,15 @@ class Task:
 
 
 DATA_FILES = ("data.path", "data.poses")
+MOTION_SMOOTHING = ("method.name", "motion", "method")
+"""``method=motion`` adds nothing to a run key: camera motion smoothing's parameters are all in
+``motion.*``, and the runs made before mrcert had methods keep their keys."""
 EVALUATION = Identity(
-    defines=("task", "data", "model", "motion", "seed", "profile"),
+    defines=("task", "data", "model", "motion", "method", "seed", "profile"),
     # The recipe in train.* is named by the checkpoint's identity; the crop is exact.
     ignores=("train", "attack", "task.batch_size", "task.backend", "task.resume", "task.crop_sigmas"),
     files=("model.checkpoint", *DATA_FILES),
+    ignore_when=(MOTION_SMOOTHING,),
     partition=PARTITION,
     needs_model=True,
 )
@@ -59,8 +63,9 @@ TASKS: dict[str, Task] = {
         "mrcert.tasks.render:run",
         "render a scene under motions, or a dataset's images into the cache",
         Identity(
-            defines=("task", "data", "motion", "seed", "profile"),
+            defines=("task", "data", "motion", "method", "seed", "profile"),
             ignores=("model", "train", "attack", "task.backend"),
+            ignore_when=(MOTION_SMOOTHING,),
             files=DATA_FILES,
         ),
     ),
@@ -68,16 +73,22 @@ TASKS: dict[str, Task] = {
         "mrcert.tasks.train:run",
         "train a vanilla or motion-augmented base classifier",
         Identity(
-            defines=("task.name", "data", "model", "train", "motion", "seed", "profile"),
-            ignores=("task", "model.checkpoint", "attack"),
-            ignore_when=(("model.variant", "vanilla", "motion"),),  # a vanilla model never sees a motion
+            defines=("task.name", "data", "model", "train", "motion", "method", "seed", "profile"),
+            ignores=("task", "model.checkpoint", "attack", "method.certify"),  # a method's certify.* never trains
+            ignore_when=(  # a vanilla model never sees a motion or a method
+                ("model.variant", "vanilla", "motion"),
+                ("model.variant", "vanilla", "method"),
+                MOTION_SMOOTHING,
+            ),
             files=DATA_FILES,
         ),
     ),
     "certify": Task(
         "mrcert.tasks.certify:run",
         "CERTIFY each test image of the smoothed classifier (certify.tsv)",
-        replace(EVALUATION, ignore_when=(("task.sequential", False, "task.look"),)),  # fixed n has no looks
+        replace(
+            EVALUATION, ignore_when=(MOTION_SMOOTHING, ("task.sequential", False, "task.look"))
+        ),  # fixed n: no looks
         log="certify.tsv",
     ),
     "smooth": Task(
@@ -96,7 +107,7 @@ TASKS: dict[str, Task] = {
     "tables": Task(
         "mrcert.tasks.tables:run",
         "the paper's tables and figure from finished MLflow runs",
-        Identity(defines=("task", "profile"), ignores=("data", "model", "motion", "seed", "attack", "train")),
+        Identity(defines=("task", "profile"), ignores=("data", "model", "motion", "method", "seed", "attack", "train")),
         reusable=False,  # its result depends on the store's runs, not only on its config
     ),
     "import": Task(
@@ -105,7 +116,7 @@ TASKS: dict[str, Task] = {
         # The log's metadata (task.dataset, task.arch, ...) is all it is; one cell may hold one log.
         Identity(
             defines=("task",),
-            ignores=("data", "model", "motion", "seed", "profile", "train", "attack"),
+            ignores=("data", "model", "motion", "method", "seed", "profile", "train", "attack"),
             files=("task.path",),
             partition=("task.path",),
         ),

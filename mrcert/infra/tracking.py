@@ -29,7 +29,7 @@ from mrcert.errors import MrcertError
 from mrcert.infra import identity
 from mrcert.infra.config import plain
 from mrcert.infra.identity import RunIdentity
-from mrcert.infra.runtime import machine
+from mrcert.infra.runtime import code_version, machine
 from mrcert.infra.store import FileLock, ensure_sqlite_store, probe_server
 
 log = logging.getLogger(__name__)
@@ -205,6 +205,7 @@ def run_tags(cfg: DictConfig) -> dict[str, str]:
         "mrcert.dataset": select("data.name"),
         "mrcert.variant": select("model.variant"),
         "mrcert.profile": select("profile.name"),
+        "mrcert.method": select("method.name"),
     }
     overrides = OmegaConf.select(cfg, "task.tags", default=None)  # e.g. an imported log's metadata
     if overrides:
@@ -438,6 +439,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
             | {
                 "mrcert.output_dir": str(output_dir.resolve()),
                 "mrcert.machine": machine(),
+                "mrcert.code_version": code_version(),
                 "mrcert.multirun": "job" if parent_id else "single",  # a sweep's parent: "parent"
             }
         )

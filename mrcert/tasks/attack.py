@@ -61,9 +61,9 @@ def attack_motions(attack: DictConfig, axis: str, seed: int, index: int) -> torc
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
-    if not ev.distribution.single:
-        raise MrcertError(f"task=attack perturbs one axis; motion={ev.distribution.name} smooths several")
-    axis = ev.distribution.axes[0]
+    if not ev.method.single:
+        raise MrcertError(f"task=attack perturbs one axis; motion={ev.method.name} smooths several")
+    axis = ev.method.axes[0]
     log = result_log(ctx, LOG, COLUMNS)
 
     @torch.inference_mode()

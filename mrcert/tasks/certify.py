@@ -40,7 +40,7 @@ LOG = "certify.tsv"
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
-    dist = ev.distribution
+    dist = ev.method
     log = result_log(ctx, LOG)
 
     def certify_one(i: int) -> dict[str, Any]:

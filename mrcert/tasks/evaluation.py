@@ -1,5 +1,5 @@
 """What ``certify``, ``smooth`` and ``attack`` share: the test images a job handles, the
-trained classifier, the smoothing distribution, and a resumable per-image loop."""
+trained classifier, the certification method, and a resumable per-image loop."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.smoothing import Render, SmoothedClassifier, SmoothingDistribution
+from mrcert.core.method import Method
+from mrcert.core.methods import build_method
+from mrcert.core.smoothing import Render, SmoothedClassifier
 from mrcert.data.datasets import DataBundle, SampleSet
 from mrcert.data.samples import TestSample
 from mrcert.data.sources import load
@@ -44,8 +46,8 @@ class Evaluation:
     backend: str
 
     @property
-    def distribution(self) -> SmoothingDistribution:
-        return self.smoothed.distribution
+    def method(self) -> Method:
+        return self.smoothed.method
 
     def render(self, sample: TestSample) -> Render:
         return sample.renderer(self.backend)
@@ -54,16 +56,16 @@ class Evaluation:
 def prepare(cfg: DictConfig) -> Evaluation:
     t = cfg.task
     device = resolve_device(cfg.device)
-    distribution = SmoothingDistribution.from_config(cfg.motion)
+    method = build_method(cfg)
     bundle = load(cfg.data)
     downsampling = None
     if cfg.data.get("downsample"):
         downsampling = (int(cfg.motion.downsample.every_k), float(cfg.motion.downsample.voxel))
-    samples = bundle.samples(downsampling=downsampling, crop=distribution.crop_bound(float(t.crop_sigmas)))
+    samples = bundle.samples(downsampling=downsampling, crop=method.crop_bound(float(t.crop_sigmas)))
     model = load_classifier(cfg, len(bundle.classes), device)
     indices = job_indices(len(samples), int(t.skip), t.get("max"), int(t.shard), int(t.num_shards))
     overlap = device.type == "cuda"  # rendering beside the model pays off when it runs on a GPU
-    smoothed = SmoothedClassifier(model, distribution, len(bundle.classes), int(t.batch_size), device, overlap)
+    smoothed = SmoothedClassifier(model, method, len(bundle.classes), int(t.batch_size), device, overlap)
     return Evaluation(bundle, samples, model, smoothed, indices, device, str(t.get("backend", "auto")))
 
 

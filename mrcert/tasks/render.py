@@ -18,8 +18,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mrcert.core.geometry import AXES, axis_index, is_translation
+from mrcert.core.methods import build_method
 from mrcert.data.cache import folder_size
-from mrcert.data.datasets import Augment
 from mrcert.data.sources import is_scene, load, load_scene
 from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
@@ -117,8 +117,8 @@ def render_dataset(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if "vanilla" in t.variants:
         sets["train"] = bundle.train
     if "augmented" in t.variants:
-        augment = Augment(cfg.motion.axis, float(cfg.motion.sigma), int(cfg.seed))
-        sets[f"train-{cfg.motion.axis}-aug"] = lambda: bundle.train(augment)
+        augment = build_method(cfg)
+        sets[f"train-{augment.name}-aug"] = lambda: bundle.train(augment, int(cfg.seed))
     loaded = {}
     for name, make in sets.items():
         began = time.perf_counter()

@@ -31,7 +31,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "predict": pred,
             "correct": int(pred == sample.label),
             "n": int(t.n),
-            "axis": ev.distribution.name,
+            "axis": ev.method.name,
         }
 
     run_per_image(log, ev.indices, predict_one, "smooth")

@@ -1,4 +1,6 @@
-"""``task=train``: vanilla and motion-augmented base classifiers with the recipe in ``train.*``.
+"""``task=train``: vanilla and augmented base classifiers with the recipe in ``train.*``; an
+augmented model trains as its certification method asks (:mod:`mrcert.core.method`: images
+rendered under the method's training motions, each batch perturbed by it).
 
 SGD (momentum, weight decay) with StepLR, seeded model initialisation and a batch order
 drawn per epoch from ``(seed, epoch)``. Model selection uses the data source's validation
@@ -25,8 +27,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from mrcert.core.methods import build_method
 from mrcert.core.models import build_model
-from mrcert.data.datasets import Augment, ImageSet
+from mrcert.core.smoothing import image_generator
+from mrcert.data.datasets import ImageSet
 from mrcert.data.holdout import validation_split
 from mrcert.data.sources import load
 from mrcert.errors import MrcertError
@@ -89,10 +93,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     bundle = load(cfg.data)
     augment = None
     if cfg.model.variant == "augmented":
-        augment = Augment(cfg.motion.axis, float(cfg.motion.sigma), int(cfg.seed))
+        augment = build_method(cfg)
     elif cfg.model.variant != "vanilla":
         raise MrcertError(f"model.variant={cfg.model.variant!r} is not allowed: vanilla or augmented")
-    all_x, all_y = as_tensors(bundle.train(augment))
+    all_x, all_y = as_tensors(bundle.train(augment, int(cfg.seed)))
     inputs: set[str] = set()
     log_inputs(ctx, bundle, "training", inputs)
     validation = bundle.validation()
@@ -136,6 +140,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         "num_classes": len(bundle.classes),
         "classes": bundle.classes,
         "variant": cfg.model.variant,
+        "method": None if augment is None else cfg.method.name,
         "axis": cfg.motion.axis,
         "model_config": OmegaConf.to_container(cfg.model.net, resolve=True),
         "validation": selection,
@@ -145,10 +150,13 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         began = time.perf_counter()
         model.train()
         order = torch.randperm(len(train_y), generator=torch.Generator().manual_seed(int(cfg.seed) * 100_003 + epoch))
+        noise = image_generator(int(cfg.seed), epoch, "training noise")  # for a method that perturbs batches
         total_loss, correct = 0.0, 0
         for s in progress(range(0, len(order), r.batch_size), f"epoch {epoch + 1}/{r.epochs}"):
             idx = order[s : s + r.batch_size]
             x = to_device(train_x[idx], device)
+            if augment is not None:
+                x = augment.perturb(x, noise)
             y = train_y[idx].to(device, non_blocking=True)
             optimizer.zero_grad(set_to_none=True)
             with torch.autocast(device.type, dtype=torch.float16, enabled=amp):  # train.amp: training only

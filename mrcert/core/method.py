@@ -1,0 +1,110 @@
+"""The plug point of a certification method: what it trains on, how it draws a test view's
+noisy samples, and how it turns their votes into a certificate.
+
+A method is built once from the config (``method`` and ``motion`` groups) and is then used by
+every task: ``task=train`` renders an augmented model's training images under
+:meth:`Method.training_motions` and perturbs each batch with :meth:`Method.perturb`;
+:class:`~mrcert.core.smoothing.SmoothedClassifier` counts votes over :meth:`Method.views`
+(PREDICT, the attack) and certifies with :meth:`Method.certify`. Two implementations:
+camera motion smoothing (:class:`~mrcert.core.smoothing.SmoothingDistribution`, ``method=motion``)
+and pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing``, ``method=pixelwise``);
+:data:`mrcert.core.methods.METHODS` names them. A new method is a class here, a line there,
+a schema in ``mrcert/infra/schema.py`` and its YAML in ``conf/method/``.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import torch
+
+from mrcert.core.crop import CropBound
+
+ABSTAIN = -1
+"""The smoothed classifier's answer when it cannot decide at the requested confidence."""
+
+Render = Callable[[torch.Tensor], torch.Tensor]
+"""What a smoothed classifier classifies: motions (B, 6) -> images (B, C, H, W), a test sample
+re-rendered under each motion (:meth:`~mrcert.data.samples.TestSample.renderer`); a method's
+:meth:`Method.views` turns it into the noisy samples it votes over."""
+
+
+@dataclass
+class Certificate:
+    prediction: int
+    radius: float
+    count_a: int
+    p_a_lower: float
+    n: int = 0  # estimation samples drawn (the sequential mode may stop early; several frames add up)
+
+
+class ViewCertifier(Protocol):
+    """What a method certifies with: Cohen's CERTIFY of one view
+    (:meth:`mrcert.core.smoothing.SmoothedClassifier.certify_view`)."""
+
+    def certify_view(
+        self, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator, center=None
+    ) -> Certificate: ...
+
+
+class Method(ABC):
+    """A certification method (see the module docstring). Implementations are frozen dataclasses."""
+
+    axes: tuple[str, ...]
+    """The motion axes it certifies against (one, or several for Theorem 1's combinations)."""
+    sigmas: tuple[float, ...]
+    """Its noise scales, one per axis (motion units) or one (pixel units)."""
+
+    @property
+    def name(self) -> str:
+        """The motion it certifies against, as logs and tables name it (``tz``, ``tx+ty+tz+rz``)."""
+        return "+".join(self.axes)
+
+    @property
+    def single(self) -> bool:
+        return len(self.axes) == 1
+
+    # --- training ------------------------------------------------------------------------------
+    def training_motions(self, n: int, seed: int) -> torch.Tensor | None:
+        """The motions (n, 6) an augmented model's ``n`` training images are rendered under, or
+        None for the training poses themselves."""
+        return None
+
+    def training_key(self, seed: int) -> dict[str, Any] | None:
+        """What defines :meth:`training_motions` (part of the image cache's key); None when
+        the images are the training poses' own."""
+        return None
+
+    def perturb(self, images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """An augmented model's training batch as it trains on it (drawn from ``generator``)."""
+        return images
+
+    # --- smoothing and certification -----------------------------------------------------------
+    @abstractmethod
+    def views(self, render: Render, n: int, generator: torch.Generator, center: torch.Tensor | None):
+        """The ``n`` noisy samples of the view seen after the camera motion ``center`` (None: the
+        test pose): ``(render_batch, inputs)``, where ``render_batch(inputs[s:e])`` gives the
+        images of samples ``s..e-1`` whatever the batches."""
+
+    @abstractmethod
+    def certify(
+        self, smoothed: ViewCertifier, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator
+    ) -> Certificate:
+        """CERTIFY one test sample with ``smoothed``'s base classifier; the radius is in motion units."""
+
+    @abstractmethod
+    def radius(self, p_a_lower: float) -> float:
+        """The radius of Cohen's certificate at one view for a lower bound on ``pA``, in the
+        units of the method's noise."""
+
+    @abstractmethod
+    def region(self) -> str:
+        """What a certified radius R means."""
+
+    @abstractmethod
+    def crop_bound(self, sigmas: float) -> CropBound:
+        """The motions a test sample's exact crop must cover (``sigmas``: the evaluation's
+        ``task.crop_sigmas``)."""

@@ -1,0 +1,328 @@
+"""Pixel-wise smoothing (PwS; Hu et al., AISTATS 2024): certify every camera pose of a one-axis
+interval ``[-a, a]`` by smoothing in pixel space at finitely many frames.
+
+The interval is cut into ``K - 1`` pieces by ``K`` evenly spaced frames ``alpha_k``; each frame
+is rendered (``x_k = O(V, alpha_k)``) and certified with Gaussian pixel noise of standard
+deviation ``sigma`` (Cohen et al.: ``g(x') = c`` for every image ``x'`` with
+``||x' - x_k||_2 < R_k = sigma Phi^-1(pA_k)``). For every piece, :func:`piece_bounds` bounds the
+l2 distance between the image at *any* pose of the piece and each of its two end frames. The
+interval is certified when every frame certifies the same class and, in every piece, one end
+frame's radius exceeds that end's bound: every pose's image then lies inside a certified ball.
+Why the bound covers every pose, occlusion changes included: docs/method.md §8.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+from omegaconf import DictConfig
+from scipy.stats import norm
+
+from mrcert.core.crop import CropBound
+from mrcert.core.geometry import axis_index, is_translation, unit
+from mrcert.core.method import ABSTAIN, Certificate, Method
+from mrcert.errors import MrcertError
+
+NOISE_BLOCK = 16
+"""Pixel-noise draws come in blocks of this many images, each block from its own seeded
+generator, so that the noise of sample ``j`` does not depend on the batch it is classified in."""
+
+
+@dataclass(frozen=True)
+class PixelNoise:
+    """Gaussian noise ``N(0, sigma^2 I)`` added to an image in [0, 1] (``sigma`` in those units)."""
+
+    sigma: float
+
+    def __post_init__(self):
+        if not self.sigma > 0:
+            raise ValueError(f"pixel noise sigma must be > 0, got {self.sigma}")
+
+    def around(self, image: torch.Tensor, seed: int):
+        """Sample indices (B,) -> noisy copies (B, C, H, W) of ``image`` (C, H, W); the noise of
+        index ``j`` is a function of ``seed`` and ``j`` only."""
+
+        def render(indices: torch.Tensor) -> torch.Tensor:
+            idx = torch.as_tensor(indices).long().flatten()
+            if not len(idx):
+                return image.new_empty((0, *image.shape))
+            first, last = int(idx.min()) // NOISE_BLOCK, int(idx.max()) // NOISE_BLOCK
+            noise = torch.cat([self._block(seed, b, image.shape) for b in range(first, last + 1)])
+            return image + self.sigma * noise[idx - first * NOISE_BLOCK].to(image.dtype)
+
+        return render
+
+    def perturb(self, images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Training: ``images`` plus fresh noise from ``generator`` (drawn on CPU)."""
+        noise = torch.randn(images.shape, generator=generator, dtype=torch.float32)
+        return images + self.sigma * noise.to(images.device, images.dtype)
+
+    @staticmethod
+    def _block(seed: int, block: int, shape) -> torch.Tensor:
+        digest = hashlib.sha256(f"mrcert/pixel-noise/{seed}/{block}".encode()).digest()
+        g = torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
+        return torch.randn((NOISE_BLOCK, *shape), generator=g, dtype=torch.float32)
+
+
+def frame_motions(axis: str, half_width: float, count: int) -> torch.Tensor:
+    """``count`` motions (count, 6) evenly spaced on ``axis`` from ``-half_width`` to ``half_width``."""
+    if count < 2:
+        raise ValueError(f"pixel-wise smoothing needs at least 2 frames, got {count}")
+    if not half_width > 0:
+        raise ValueError(f"the certified interval's half-width must be > 0, got {half_width}")
+    motions = torch.zeros(count, 6, dtype=torch.float64)
+    motions[:, axis_index(axis)] = torch.linspace(-half_width, half_width, count, dtype=torch.float64)
+    return motions
+
+
+def piece_bounds(
+    points: torch.Tensor,
+    colors: torch.Tensor,
+    K: torch.Tensor,
+    axis: str,
+    frames: torch.Tensor,
+    images: torch.Tensor,
+    background: float,
+    per_pixel: bool = False,
+) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For each piece ``[alpha_k, alpha_k+1]`` of a one-axis frame sequence: upper bounds on
+    ``||O(V, alpha) - x_k||_2`` (``left``) and ``||O(V, alpha) - x_k+1||_2`` (``right``) over every
+    pose ``alpha`` of the piece.
+
+    Args:
+        points, colors: the cloud (N, 3) in the reference camera frame and its colours (N, C)
+            -- every point that can land in the image for some pose of the interval.
+        K: intrinsics; axis: the moving axis; frames: (K, 6) motions on that axis, increasing.
+        images: (K, C, H, W) the frames' renders ``x_k``; background: the value of empty pixels.
+
+    Per pixel, the colours the pixel can take anywhere in the piece are those of the points
+    whose path can cross it, plus the background unless some point stays in it throughout;
+    a point is left out when such a staying point is always strictly nearer (it cannot win).
+    Each pixel contributes its largest squared distance to the frame's pixel; with
+    ``per_pixel`` those (K - 1, H, W) maps come back too (left, right, left map, right map).
+    """
+    i = axis_index(axis)
+    amounts = frames[:, i].to(torch.float64).numpy()
+    if len(amounts) < 2 or not np.all(np.diff(amounts) > 0):
+        raise ValueError("frames must be at least 2 motions on one axis, in increasing order")
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    c, height, width = images.shape[1:]
+    xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).numpy())
+    table = np.ascontiguousarray(torch.as_tensor(colors).to(torch.float64).numpy())
+    frames_np = np.ascontiguousarray(images.to(torch.float64).reshape(len(amounts), c, height * width).numpy())
+    pieces = len(amounts) - 1
+    left, right = np.empty(pieces), np.empty(pieces)
+    maps = np.empty((2, pieces if per_pixel else 0, height * width))
+    _bounds_kernel(
+        xyz, table, amounts, i if is_translation(axis) else i - 3, is_translation(axis),
+        fx, fy, cx, cy, height, width, float(background), frames_np, left, right, maps,
+    )  # fmt: skip
+    if per_pixel:
+        return left, right, maps[0].reshape(pieces, height, width), maps[1].reshape(pieces, height, width)
+    return left, right
+
+
+PIXEL_SLACK = 1e-6
+"""Pixels by which every projected extent is widened (and a 'stays in one pixel' test
+narrowed), far above float64 rounding, so the bound holds for the kernel's own arithmetic."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _path_vertices(P, a0, a1, j, translation, out):  # pragma: no cover - compiled
+    """Vertices (rows of ``out``) of a convex polygon holding the point's camera coordinates for
+    every motion from ``a0`` to ``a1`` on axis ``j``; returns how many (2 or 3).
+
+    A translation ``t`` moves ``P`` to ``P - t``: the segment between the ends. A rotation
+    by ``theta`` about axis ``j`` moves it to ``R(theta)^T P``, an arc about that axis; the arc
+    (of angle ``< pi``) lies in the triangle of its ends and the meeting point of their tangents."""
+    if translation:
+        for k in range(3):
+            out[0, k] = P[k]
+            out[1, k] = P[k]
+        out[0, j] -= a0
+        out[1, j] -= a1
+        return 2
+    p, q = (j + 1) % 3, (j + 2) % 3  # R(theta)^T turns (P_p, P_q) by -theta
+    mid = 0.5 * (a0 + a1)
+    half = 0.5 * (a1 - a0)
+    for row, angle, scale in ((0, a0, 1.0), (1, a1, 1.0), (2, mid, 1.0 / np.cos(half))):
+        cs, sn = np.cos(angle), np.sin(angle)
+        out[row, j] = P[j]
+        out[row, p] = (cs * P[p] + sn * P[q]) * scale
+        out[row, q] = (-sn * P[p] + cs * P[q]) * scale
+    return 3
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _bounds_kernel(
+    P, colors, amounts, j, translation, fx, fy, cx, cy, height, width, background, frames, left, right, maps
+):  # pragma: no cover - compiled
+    n, nc = P.shape[0], colors.shape[1]
+    hw = height * width
+    for k in numba.prange(len(amounts) - 1):
+        a0, a1 = amounts[k], amounts[k + 1]
+        box = np.zeros((n, 4), np.int64)  # u0, u1, v0, v1; u0 > u1: cannot land
+        zlow = np.empty(n)
+        cover = np.full(hw, np.inf)  # the largest depth of a point that stays in the pixel, minimised
+        verts = np.empty((3, 3))
+        for i in range(n):
+            m = _path_vertices(P[i], a0, a1, j, translation, verts)
+            zmin, zmax = np.inf, -np.inf
+            umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+            for r in range(m):
+                z = verts[r, 2]
+                zmin, zmax = min(zmin, z), max(zmax, z)
+                if z > 0.0:
+                    u = fx * (verts[r, 0] / z) + cx
+                    v = fy * (verts[r, 1] / z) + cy
+                    umin, umax, vmin, vmax = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v)
+            zlow[i] = zmin - 1e-9 * abs(zmin)
+            if zmax <= 0.0:  # behind the camera throughout
+                box[i, 0], box[i, 1] = 1, 0
+                continue
+            if zmin <= 1e-9 * zmax:  # may cross the camera plane: anywhere in the image
+                box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 0, width - 1, 0, height - 1
+                zlow[i] = -np.inf
+                continue
+            lo_u, hi_u = np.floor(umin - PIXEL_SLACK), np.floor(umax + PIXEL_SLACK)
+            lo_v, hi_v = np.floor(vmin - PIXEL_SLACK), np.floor(vmax + PIXEL_SLACK)
+            if hi_u < 0 or lo_u >= width or hi_v < 0 or lo_v >= height:
+                box[i, 0], box[i, 1] = 1, 0
+                continue
+            box[i, 0], box[i, 1] = int(max(lo_u, 0.0)), int(min(hi_u, width - 1.0))
+            box[i, 2], box[i, 3] = int(max(lo_v, 0.0)), int(min(hi_v, height - 1.0))
+            if lo_u == hi_u and lo_v == hi_v:  # stays in this pixel for the whole piece
+                p = int(lo_v) * width + int(lo_u)
+                cover[p] = min(cover[p], zmax + 1e-9 * abs(zmax))
+        worst_l = np.zeros(hw)
+        worst_r = np.zeros(hw)
+        for i in range(n):
+            if box[i, 0] > box[i, 1]:
+                continue
+            for v in range(box[i, 2], box[i, 3] + 1):
+                for u in range(box[i, 0], box[i, 1] + 1):
+                    p = v * width + u
+                    if zlow[i] > cover[p]:  # a point staying here is always nearer
+                        continue
+                    dl, dr = 0.0, 0.0
+                    for ch in range(nc):
+                        dl += (colors[i, ch] - frames[k, ch, p]) ** 2
+                        dr += (colors[i, ch] - frames[k + 1, ch, p]) ** 2
+                    worst_l[p] = max(worst_l[p], dl)
+                    worst_r[p] = max(worst_r[p], dr)
+        total_l, total_r = 0.0, 0.0
+        for p in range(hw):
+            if cover[p] == np.inf:  # may be empty somewhere in the piece
+                dl, dr = 0.0, 0.0
+                for ch in range(nc):
+                    dl += (background - frames[k, ch, p]) ** 2
+                    dr += (background - frames[k + 1, ch, p]) ** 2
+                worst_l[p] = max(worst_l[p], dl)
+                worst_r[p] = max(worst_r[p], dr)
+            total_l += worst_l[p]
+            total_r += worst_r[p]
+        left[k] = np.sqrt(total_l) * (1.0 + 1e-9)
+        right[k] = np.sqrt(total_r) * (1.0 + 1e-9)
+        if maps.shape[1]:
+            maps[0, k] = worst_l
+            maps[1, k] = worst_r
+
+
+def interval_certified(classes: np.ndarray, radii: np.ndarray, left: np.ndarray, right: np.ndarray) -> bool:
+    """Whether the frames' certificates cover the whole interval: one class at every frame (no
+    abstention) and, in every piece, an end frame whose certified radius exceeds its bound."""
+    classes, radii = np.asarray(classes), np.asarray(radii)
+    if len(classes) != len(left) + 1 or (classes < 0).any() or (classes != classes[0]).any():
+        return False
+    return bool(np.all((left < radii[:-1]) | (right < radii[1:])))
+
+
+@dataclass(frozen=True)
+class PixelwiseSmoothing(Method):
+    """Pixel-wise smoothing (``method=pixelwise``): Gaussian pixel noise of ``sigma`` trains the
+    augmented model and smooths it at ``frames`` frames of ``[-half_width, half_width]`` on
+    ``axis``; a test sample is certified for the whole interval or not at all (its radius is
+    ``half_width`` or 0). Frames are certified at ``alpha / frames`` each (Bonferroni), so all
+    of them hold together with probability at least ``1 - alpha``."""
+
+    axis: str
+    sigma: float
+    half_width: float
+    frames: int
+
+    def __post_init__(self):
+        axis_index(self.axis)
+        if not self.sigma > 0:
+            raise MrcertError(f"method.sigma={self.sigma} is not allowed: the pixel noise must be > 0")
+        if not self.half_width > 0:
+            raise MrcertError(f"method.certify.half_width={self.half_width} is not allowed: it must be > 0")
+        if int(self.frames) != self.frames or self.frames < 2:
+            raise MrcertError(f"method.certify.frames={self.frames} is not allowed: an integer >= 2")
+
+    @classmethod
+    def from_config(cls, method: DictConfig, motion: DictConfig) -> PixelwiseSmoothing:
+        if motion.get("axes"):
+            raise MrcertError(f"method=pixelwise certifies an interval on one axis; motion={motion.axis} has several")
+        return cls(str(motion.axis), float(method.sigma), float(method.certify.half_width), int(method.certify.frames))
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return (self.axis,)
+
+    @property
+    def sigmas(self) -> tuple[float, ...]:
+        return (self.sigma,)
+
+    @property
+    def noise(self) -> PixelNoise:
+        return PixelNoise(self.sigma)
+
+    def perturb(self, images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        return self.noise.perturb(images, generator)
+
+    def views(self, render, n: int, generator: torch.Generator, center: torch.Tensor | None):
+        """The view rendered once at ``center`` (the test pose when None), plus pixel noise."""
+        pose = torch.zeros(1, 6, dtype=torch.float64) if center is None else center.to(torch.float64).reshape(1, 6)
+        seed = int(torch.randint(0, 1 << 62, (1,), generator=generator))
+        return self.noise.around(render(pose)[0], seed), torch.arange(n)
+
+    def radius(self, p_a_lower: float) -> float:
+        return self.sigma * float(norm.ppf(p_a_lower))
+
+    def region(self) -> str:
+        return (
+            f"the whole interval |{self.axis}| <= {self.half_width:g} {unit(self.axis)} when R > 0 (pixel-wise "
+            f"smoothing, {self.frames} frames, pixel sigma {self.sigma:g}); R is {self.half_width:g} or 0"
+        )
+
+    def crop_bound(self, sigmas: float) -> CropBound:
+        if is_translation(self.axis):
+            box = [0.0, 0.0, 0.0]
+            box[axis_index(self.axis)] = self.half_width
+            return CropBound(tuple(box))
+        return CropBound((0.0, 0.0, 0.0), self.half_width, roll_only=self.axis == "rz")
+
+    def certify(self, smoothed, render, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
+        """Every frame certified at ``alpha / frames``; the interval when :func:`interval_certified`."""
+        sample = getattr(render, "sample", None)
+        if sample is None:
+            raise MrcertError("pixel-wise certification needs a test sample's renderer (TestSample.renderer())")
+        frames = frame_motions(self.axis, self.half_width, self.frames)
+        certs = [smoothed.certify_view(render, n0, n, alpha / self.frames, generator, f) for f in frames]
+        points, colors = sample.cloud_for(frames)
+        left, right = piece_bounds(points, colors, sample.K, self.axis, frames, render(frames), sample.background)
+        classes = np.array([c.prediction for c in certs])
+        radii = np.array([c.radius for c in certs])
+        agreed = bool((classes >= 0).all() and (classes == classes[0]).all())
+        worst = min(certs, key=lambda c: c.p_a_lower)
+        return Certificate(
+            int(classes[0]) if agreed else ABSTAIN,
+            self.half_width if interval_certified(classes, radii, left, right) else 0.0,
+            worst.count_a,
+            worst.p_a_lower,
+            n * self.frames,
+        )

@@ -1,0 +1,198 @@
+"""Pixel-wise smoothing: the bound between frames is sound for every pose, occlusion included,
+and the interval rule, the noise and the frames behave as documented (docs/method.md §8)."""
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+
+from mrcert.__main__ import run_task
+from mrcert.core.pixelwise import PixelNoise, frame_motions, interval_certified, piece_bounds
+from mrcert.core.projection import project
+from mrcert.errors import ConfigError
+from mrcert.infra.config import validate
+from mrcert.infra.identity import identify
+from mrcert.infra.tasks import TASKS
+from mrcert.reporting.certify_log import read_log
+from tests.conftest import PAPER_K, TINY, compose_cfg
+
+H, W = 90, 160
+
+
+def occluding_scene(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A wall of random colours at 3 m with a hole showing the background, and a nearer
+    square at 1.5 m in front of it: edges, occlusion and disocclusion under any motion."""
+    rng = np.random.default_rng(seed)
+    wall = np.column_stack([rng.uniform(-2.2, 2.2, 60000), rng.uniform(-1.3, 1.3, 60000), np.full(60000, 3.0)])
+    hole = (np.abs(wall[:, 0] - 0.9) < 0.25) & (np.abs(wall[:, 1] + 0.3) < 0.2)
+    near = np.column_stack([rng.uniform(-0.5, 0.2, 12000), rng.uniform(-0.4, 0.3, 12000), np.full(12000, 1.5)])
+    near[:, 2] += rng.uniform(-0.02, 0.02, len(near))  # a rough surface, black in front, white behind
+    colors = np.concatenate([rng.uniform(0, 1, (int((~hole).sum()), 3)), np.repeat((near[:, 2:] > 1.5) * 1.0, 3, 1)])
+    return torch.from_numpy(np.concatenate([wall[~hole], near])), torch.from_numpy(colors.astype(np.float32))
+
+
+def render(points, colors, motions) -> torch.Tensor:
+    return project(points, colors, PAPER_K, motions, H, W, 1.0)[0]
+
+
+def dense_views(frames: torch.Tensor, per_piece: int, seed: int = 0):
+    """Per piece: ``per_piece`` poses drawn uniformly inside it, plus its middle and poses just
+    inside each end, as motions (its index, motions)."""
+    rng = np.random.default_rng(seed)
+    axis = int(torch.nonzero(frames[-1]).flatten()[0])
+    for k in range(len(frames) - 1):
+        a0, a1 = float(frames[k, axis]), float(frames[k + 1, axis])
+        inside = np.concatenate([rng.uniform(a0, a1, per_piece), [a0 + 1e-9, a1 - 1e-9, 0.5 * (a0 + a1)]])
+        motions = torch.zeros(len(inside), 6, dtype=torch.float64)
+        motions[:, axis] = torch.from_numpy(inside)
+        yield k, motions
+
+
+def worst_distances(points, colors, frames, images, per_piece: int) -> tuple[np.ndarray, np.ndarray]:
+    """The largest l2 distance to each piece's left and right frame over its dense poses."""
+    left, right = [], []
+    for k, motions in dense_views(frames, per_piece):
+        views = render(points, colors, motions)
+        left.append(float((views - images[k]).flatten(1).norm(dim=1).max()))
+        right.append(float((views - images[k + 1]).flatten(1).norm(dim=1).max()))
+    return np.array(left), np.array(right)
+
+
+@pytest.mark.parametrize(("axis", "half_width"), [("tz", 0.02), ("tx", 0.01), ("ry", 0.004), ("rz", 0.01), ("rz", 0.4)])
+def test_every_pose_between_two_frames_is_within_the_bound_of_both(axis, half_width):
+    points, colors = occluding_scene()
+    frames = frame_motions(axis, half_width, 5)
+    images = render(points, colors, frames)
+    left, right, left_map, right_map = piece_bounds(points, colors, PAPER_K, axis, frames, images, 1.0, per_pixel=True)
+    # Pixel by pixel, every dense pose's colour is within the bound of that pixel ...
+    for k, motions in dense_views(frames, per_piece=60):
+        views, frame = render(points, colors, motions).double(), images.double()
+        assert (((views - frame[k]) ** 2).sum(1) <= torch.from_numpy(left_map[k]) + 1e-12).all()
+        assert (((views - frame[k + 1]) ** 2).sum(1) <= torch.from_numpy(right_map[k]) + 1e-12).all()
+    # ... and so each image is within the piece's l2 bound of both its frames.
+    assert np.allclose(left**2, left_map.reshape(len(left), -1).sum(1), rtol=1e-6)
+    seen_left, seen_right = worst_distances(points, colors, frames, images, per_piece=60)
+    assert (seen_left <= left).all() and (seen_right <= right).all()
+    # The frames' own images are what the bound is measured against: a piece's far end is
+    # one of its poses, so its bound is at least the distance between the two frames.
+    between = (images[1:] - images[:-1]).flatten(1).norm(dim=1).numpy()
+    assert (left >= between - 1e-6).all() and (right >= between - 1e-6).all()
+    # Not vacuous: close to the largest distance the dense poses show (1.09-1.14x measured;
+    # 1.7x for pieces of 0.2 rad, where points sweep many pixels).
+    assert (left <= 2 * seen_left).all() and (right <= 2 * seen_right).all()
+
+
+def striped_wall(period: float, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A wall at 3 m of black and white vertical stripes ``period`` metres apart, densely sampled."""
+    rng = np.random.default_rng(seed)
+    pts = np.column_stack([rng.uniform(-2.2, 2.2, 150000), rng.uniform(-1.3, 1.3, 150000), np.full(150000, 3.0)])
+    white = np.floor(pts[:, 0] / (period / 2)) % 2 == 1
+    return torch.from_numpy(pts), torch.from_numpy(np.repeat(white[:, None], 3, axis=1).astype(np.float32))
+
+
+def test_a_bound_from_the_frames_alone_fails_the_dense_check_where_the_real_one_holds():
+    """The deliberate break: bound each piece by the distance between its two frames (as if
+    images changed no more between frames than across them). Stripes one piece's motion
+    apart look the same at both frames and inverted half-way: the dense check catches the
+    break, and the real bound still covers every pose."""
+    points, colors = striped_wall(period=0.05)
+    frames = frame_motions("tx", 0.1, 5)  # pieces of 0.05 m: one stripe period
+    images = render(points, colors, frames)
+    seen_left, seen_right = worst_distances(points, colors, frames, images, per_piece=40)
+    naive = (images[1:] - images[:-1]).flatten(1).norm(dim=1).numpy()
+    assert (seen_left > naive + 1e-6).any() and (seen_right > naive + 1e-6).any()
+    left, right = piece_bounds(points, colors, PAPER_K, "tx", frames, images, 1.0)
+    assert (seen_left <= left).all() and (seen_right <= right).all()
+
+
+def test_more_frames_give_smaller_bounds():
+    points, colors = occluding_scene()
+    worst = []
+    for count in (3, 9, 33):
+        frames = frame_motions("tz", 0.02, count)
+        left, _ = piece_bounds(points, colors, PAPER_K, "tz", frames, render(points, colors, frames), 1.0)
+        worst.append(left.max())
+    assert worst[0] > worst[1] > worst[2]
+
+
+def test_the_interval_needs_one_class_and_a_covering_frame_in_every_piece():
+    left, right = np.array([0.3, 0.5]), np.array([0.4, 0.2])
+    assert interval_certified(np.array([1, 1, 1]), np.array([0.35, 0.1, 0.25]), left, right)
+    assert not interval_certified(np.array([1, 1, 1]), np.array([0.35, 0.1, 0.15]), left, right)  # piece 2 open
+    assert not interval_certified(np.array([1, 2, 1]), np.array([1.0, 1.0, 1.0]), left, right)  # two classes
+    assert not interval_certified(np.array([1, -1, 1]), np.array([1.0, 0.0, 1.0]), left, right)  # abstention
+    assert not interval_certified(np.array([1, 1, 1]), np.array([0.3, 0.1, 0.2]), left, right)  # radius == bound
+
+
+def test_pixel_noise_is_the_same_whatever_the_batches():
+    image = torch.rand(3, H, W, generator=torch.Generator().manual_seed(0))
+    noisy = PixelNoise(0.25).around(image, seed=7)
+    whole = noisy(torch.arange(50))
+    pieces = torch.cat([noisy(torch.arange(s, min(s + 7, 50))) for s in range(0, 50, 7)])
+    assert torch.equal(whole, pieces)
+    noise = (whole - image).flatten()
+    assert abs(float(noise.std()) - 0.25) < 0.01 and abs(float(noise.mean())) < 0.01
+    assert not torch.equal(noisy(torch.arange(3)), PixelNoise(0.25).around(image, seed=8)(torch.arange(3)))
+
+
+@pytest.mark.parametrize(("count", "half_width"), [(1, 0.1), (3, 0.0)])
+def test_bad_frames_are_refused(count, half_width):
+    with pytest.raises(ValueError, match="frames|half-width"):
+        frame_motions("tz", half_width, count)
+
+
+PIXELWISE = ["method=pixelwise", "method.certify.frames=3", "method.certify.half_width=0.01", "method.sigma=0.25"]
+RECIPE = ["train.epochs=2", "train.batch_size=8"]
+
+
+def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_path):
+    """``mrcert task=certify method=pixelwise motion=tz``: its own augmented model (pixel noise),
+    one certificate per image for the whole interval, a finished MLflow run keyed by the method."""
+    train = compose_cfg([*TINY, *RECIPE, *PIXELWISE, "task=train", "model.variant=augmented"], tmp_path)
+    run_task(train, tmp_path / "t")
+    cfg = compose_cfg(
+        [*TINY, *RECIPE, *PIXELWISE, "task=certify", "model.variant=augmented", "task.n0=8", "task.n=40", "task.max=2"],
+        tmp_path,
+    )
+    metrics = run_task(cfg, tmp_path / "c")
+    log = read_log(tmp_path / "c" / "certify.tsv")
+    assert len(log) == 2 and set(log.radius) <= {0.0, 0.01} and (log.n == 3 * 40).all()
+    assert metrics["mean_samples"] == 120
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    runs = mlflow.search_runs(search_all_experiments=True, filter_string="attributes.status = 'FINISHED'")
+    certify = runs[runs["tags.mrcert.task"] == "certify"]
+    assert len(certify) == 1 and certify.iloc[0]["params.method.name"] == "pixelwise"
+    trained = runs[runs["tags.mrcert.task"] == "train"].iloc[0]
+    assert certify.iloc[0]["tags.mrcert.train_run"] == trained["run_id"]  # bound to the pixel-noise model
+
+
+def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_path):
+    def key(overrides):
+        return identify(compose_cfg(["task=train", *overrides], tmp_path), TASKS["train"].identity).key
+
+    motion = key(["model.variant=augmented"])
+    assert key(["model.variant=augmented", "method=pixelwise"]) != motion
+    assert key(["model.variant=augmented", "method=motion"]) == motion
+    assert key(["model.variant=vanilla", "method=pixelwise"]) == key(["model.variant=vanilla"])  # one vanilla model
+    pixelwise = key(["model.variant=augmented", "method=pixelwise"])
+    assert key(["model.variant=augmented", "method=pixelwise", "method.certify.frames=5"]) == pixelwise
+    assert key(["model.variant=augmented", "method=pixelwise", "method.sigma=0.5"]) != pixelwise
+    # The key of method=motion runs is the one they had before methods existed: no method.* in it.
+    values = identify(compose_cfg(["task=train", "model.variant=augmented"], tmp_path), TASKS["train"].identity).values
+    assert not any(k.startswith("method") for k in values)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key"),
+    [
+        (["method.name=bogus"], "method.name"),
+        (["task=certify", "task.sequential=true", "method=pixelwise"], "task.sequential"),
+        (["method=pixelwise", "motion=txyz_rz"], "motion"),
+        (["method=pixelwise", "method.certify.frames=1"], "method.certify.frames"),
+        (["method=pixelwise", "method.certify.half_width=0"], "method.certify.half_width"),
+    ],
+)
+def test_bad_method_settings_are_refused_naming_the_key(overrides, key, tmp_path):
+    with pytest.raises(ConfigError) as err:
+        validate(compose_cfg(overrides, tmp_path))
+    assert err.value.key == key
