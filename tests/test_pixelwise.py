@@ -5,15 +5,20 @@ import mlflow
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from mrcert.__main__ import run_task
-from mrcert.core.pixelwise import PixelNoise, frame_motions, interval_certified, piece_bounds
+from mrcert.core.methods import build_method
+from mrcert.core.pixelwise import PixelNoise, PixelwiseSmoothing, frame_motions, interval_certified, piece_bounds
 from mrcert.core.projection import project
+from mrcert.data.sources import load
 from mrcert.errors import ConfigError
+from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.config import validate
 from mrcert.infra.identity import identify
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting.certify_log import read_log
+from mrcert.tasks.train import accuracy, as_tensors, evaluate
 from tests.conftest import PAPER_K, TINY, compose_cfg
 
 H, W = 90, 160
@@ -149,7 +154,12 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     """``mrcert task=certify method=pixelwise motion=tz``: its own augmented model (pixel noise),
     one certificate per image for the whole interval, a finished MLflow run keyed by the method."""
     train = compose_cfg([*TINY, *RECIPE, *PIXELWISE, "task=train", "model.variant=augmented"], tmp_path)
-    run_task(train, tmp_path / "t")
+    result = run_task(train, tmp_path / "t")
+    # The model is selected and measured on images as it will see them: with pixel noise.
+    bundle = load(train.data)
+    model = load_classifier(OmegaConf.merge(train, {"model": {"checkpoint": result["checkpoint"]}}), 3, "cpu")
+    test_x, test_y = as_tensors(bundle.test())
+    assert accuracy(model, test_x, test_y, "cpu", 64, build_method(train)) == result["test_acc"]
     cfg = compose_cfg(
         [*TINY, *RECIPE, *PIXELWISE, "task=certify", "model.variant=augmented", "task.n0=8", "task.n=40", "task.max=2"],
         tmp_path,
@@ -196,3 +206,21 @@ def test_bad_method_settings_are_refused_naming_the_key(overrides, key, tmp_path
     with pytest.raises(ConfigError) as err:
         validate(compose_cfg(overrides, tmp_path))
     assert err.value.key == key
+
+
+class NoiseDetector(torch.nn.Module):
+    """Class 0 when the image varies (noise), class 1 when it is flat."""
+
+    def forward(self, x):
+        spread = x.flatten(1).std(dim=1)
+        return torch.stack([spread, torch.full_like(spread, 0.1)], dim=1)
+
+
+def test_a_pixel_noise_model_is_validated_and_tested_on_noisy_images():
+    flat = torch.full((8, 3, H, W), 128, dtype=torch.uint8)
+    labels = torch.zeros(8, dtype=torch.long)
+    method = PixelwiseSmoothing("tz", 0.25, 0.01, 3)
+    assert accuracy(NoiseDetector(), flat, labels, "cpu", 3, method) == 1.0  # it sees noise, in any batches
+    assert accuracy(NoiseDetector(), flat, labels, "cpu", 3) == 0.0
+    noisy = [evaluate(NoiseDetector(), flat, labels, "cpu", size, method) for size in (3, 8)]
+    assert noisy[0] == pytest.approx(noisy[1], rel=1e-6)

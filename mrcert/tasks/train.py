@@ -1,6 +1,7 @@
 """``task=train``: vanilla and augmented base classifiers with the recipe in ``train.*``; an
 augmented model trains as its certification method asks (:mod:`mrcert.core.method`: images
-rendered under the method's training motions, each batch perturbed by it).
+rendered under the method's training motions, each batch perturbed by it), and its validation
+and test images are perturbed the same way (with noise fixed across epochs) before it sees them.
 
 SGD (momentum, weight decay) with StepLR, seeded model initialisation and a batch order
 drawn per epoch from ``(seed, epoch)``. Model selection uses the data source's validation
@@ -27,6 +28,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from mrcert.core.method import Method
 from mrcert.core.methods import build_method
 from mrcert.core.models import build_model
 from mrcert.core.smoothing import image_generator
@@ -65,20 +67,26 @@ def to_device(images: torch.Tensor, device: torch.device) -> torch.Tensor:
 
 
 @torch.inference_mode()
-def evaluate(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int) -> tuple[float, float]:
-    """(accuracy, mean cross-entropy) of ``model`` on the images."""
+def evaluate(
+    model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int, seen: Method | None = None
+) -> tuple[float, float]:
+    """(accuracy, mean cross-entropy) of ``model`` on the images, each perturbed as ``seen``
+    perturbs training batches (a pixel-noise model is only ever used on noisy images); image
+    ``i``'s noise comes from its own generator, the same at every call and in any batches."""
     model.eval()
     correct, loss = 0, 0.0
     for s in range(0, len(labels), batch):
         x = to_device(images[s : s + batch], torch.device(device))
+        if seen is not None:
+            x = torch.cat([seen.perturb(x[j : j + 1], image_generator(0, "evaluation", s + j)) for j in range(len(x))])
         logits = model(x).float().cpu()
         correct += int((logits.argmax(1) == labels[s : s + batch]).sum())
         loss += float(nn.functional.cross_entropy(logits, labels[s : s + batch], reduction="sum"))
     return correct / max(len(labels), 1), loss / max(len(labels), 1)
 
 
-def accuracy(model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int) -> float:
-    return evaluate(model, images, labels, device, batch)[0]
+def accuracy(model: nn.Module, images, labels, device, batch: int, seen: Method | None = None) -> float:
+    return evaluate(model, images, labels, device, batch, seen)[0]
 
 
 def better(val: tuple[float, float], best: tuple[float, float] | None) -> bool:
@@ -176,10 +184,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "epoch_seconds": time.perf_counter() - began,
         }
         # With no validation images (train.val_fraction=0) every epoch replaces best.pt: the last is kept.
-        val = evaluate(model, val_x, val_y, device, t.eval_batch_size) if len(val_y) else None
+        val = evaluate(model, val_x, val_y, device, t.eval_batch_size, augment) if len(val_y) else None
         if val is not None:
             history["val_acc"], history["val_loss"] = val
-        history["epoch_test_acc"] = accuracy(model, test_x, test_y, device, t.eval_batch_size)  # recorded only
+        history["epoch_test_acc"] = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment)  # recorded only
         ctx.tracker.log_metrics(history, step=epoch)
         weights = {k: v.cpu() for k, v in model.state_dict().items()}
         if val is None or better(val, best):
@@ -207,7 +215,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     # The test images, once, for the record: the selected model's accuracy on them.
     chosen = torch.load(best_path, map_location="cpu", weights_only=True)
     model.load_state_dict(chosen["model"])
-    test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size)
+    test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment)
     summary = {"test_acc": test_acc, "best_epoch": chosen["epoch"] + 1}
     summary |= {"best_val_acc": best[0], "best_val_loss": best[1]} if best is not None else {}
     ctx.tracker.log_metrics(summary)
