@@ -88,6 +88,7 @@ def piece_bounds(
     images: torch.Tensor,
     background: float,
     per_pixel: bool = False,
+    rank: torch.Tensor | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For each piece ``[alpha_k, alpha_k+1]`` of a one-axis frame sequence: upper bounds on
     ``||O(V, alpha) - x_k||_2`` (``left``) and ``||O(V, alpha) - x_k+1||_2`` (``right``) over every
@@ -98,10 +99,13 @@ def piece_bounds(
             -- every point that can land in the image for some pose of the interval.
         K: intrinsics; axis: the moving axis; frames: (K, 6) motions on that axis, increasing.
         images: (K, C, H, W) the frames' renders ``x_k``; background: the value of empty pixels.
+        rank: each point's index for the projection's tie rule (default: its row).
 
     Per pixel, the colours the pixel can take anywhere in the piece are those of the points
     whose path can cross it, plus the background unless some point stays in it throughout;
-    a point is left out when such a staying point is always strictly nearer (it cannot win).
+    a point is left out when such a staying point is always strictly nearer, or -- along a
+    translation, where two points of equal depth keep equal depths -- at most as far in the
+    reference frame and of lower rank (it then wins every tie): the left-out point cannot win.
     Each pixel contributes its largest squared distance to the frame's pixel; with
     ``per_pixel`` those (K - 1, H, W) maps come back too (left, right, left map, right map).
     """
@@ -114,11 +118,12 @@ def piece_bounds(
     xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).numpy())
     table = np.ascontiguousarray(torch.as_tensor(colors).to(torch.float64).numpy())
     frames_np = np.ascontiguousarray(images.to(torch.float64).reshape(len(amounts), c, height * width).numpy())
+    ranks = np.arange(len(xyz)) if rank is None else np.ascontiguousarray(torch.as_tensor(rank).to(torch.int64).numpy())
     pieces = len(amounts) - 1
     left, right = np.empty(pieces), np.empty(pieces)
     maps = np.empty((2, pieces if per_pixel else 0, height * width))
     _bounds_kernel(
-        xyz, table, amounts, i if is_translation(axis) else i - 3, is_translation(axis),
+        xyz, ranks, table, amounts, i if is_translation(axis) else i - 3, is_translation(axis),
         fx, fy, cx, cy, height, width, float(background), frames_np, left, right, maps,
     )  # fmt: skip
     if per_pixel:
@@ -159,7 +164,7 @@ def _path_vertices(P, a0, a1, j, translation, out):  # pragma: no cover - compil
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _bounds_kernel(
-    P, colors, amounts, j, translation, fx, fy, cx, cy, height, width, background, frames, left, right, maps
+    P, rank, colors, amounts, j, translation, fx, fy, cx, cy, height, width, background, frames, left, right, maps
 ):  # pragma: no cover - compiled
     n, nc = P.shape[0], colors.shape[1]
     hw = height * width
@@ -168,6 +173,8 @@ def _bounds_kernel(
         box = np.zeros((n, 4), np.int64)  # u0, u1, v0, v1; u0 > u1: cannot land
         zlow = np.empty(n)
         cover = np.full(hw, np.inf)  # the largest depth of a point that stays in the pixel, minimised
+        tie_z = np.full(hw, np.inf)  # translations: the staying point of least (reference depth, rank)
+        tie_rank = np.zeros(hw, np.int64)
         verts = np.empty((3, 3))
         for i in range(n):
             m = _path_vertices(P[i], a0, a1, j, translation, verts)
@@ -198,6 +205,8 @@ def _bounds_kernel(
             if lo_u == hi_u and lo_v == hi_v:  # stays in this pixel for the whole piece
                 p = int(lo_v) * width + int(lo_u)
                 cover[p] = min(cover[p], zmax + 1e-9 * abs(zmax))
+                if P[i, 2] < tie_z[p] or (P[i, 2] == tie_z[p] and rank[i] < tie_rank[p]):
+                    tie_z[p], tie_rank[p] = P[i, 2], rank[i]
         worst_l = np.zeros(hw)
         worst_r = np.zeros(hw)
         for i in range(n):
@@ -207,6 +216,11 @@ def _bounds_kernel(
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
                     if zlow[i] > cover[p]:  # a point staying here is always nearer
+                        continue
+                    # Along a translation every depth is its reference depth less the same amount
+                    # (exactly 0 or t on the axis), so order and ties are kept: no deeper or tied
+                    # point of higher rank ever beats the staying point.
+                    if translation and P[i, 2] >= tie_z[p] and rank[i] > tie_rank[p]:
                         continue
                     dl, dr = 0.0, 0.0
                     for ch in range(nc):
@@ -313,8 +327,10 @@ class PixelwiseSmoothing(Method):
             raise MrcertError("pixel-wise certification needs a test sample's renderer (TestSample.renderer())")
         frames = frame_motions(self.axis, self.half_width, self.frames)
         certs = [smoothed.certify_view(render, n0, n, alpha / self.frames, generator, f) for f in frames]
-        points, colors = sample.cloud_for(frames)
-        left, right = piece_bounds(points, colors, sample.K, self.axis, frames, render(frames), sample.background)
+        points, colors, rank = sample.cloud_for(frames)
+        left, right = piece_bounds(
+            points, colors, sample.K, self.axis, frames, render(frames), sample.background, rank=rank
+        )
         classes = np.array([c.prediction for c in certs])
         radii = np.array([c.radius for c in certs])
         agreed = bool((classes >= 0).all() and (classes == classes[0]).all())

@@ -107,12 +107,12 @@ class TestSample:
         """The sample as a smoothed classifier sees it: motions (B, 6) -> images (B, C, H, W)."""
         return SampleRenderer(self, backend)
 
-    def cloud_for(self, motions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Points and colours holding every point that can land in the image for a motion
-        within the bound of ``motions``: the crop when the bound holds them all, else the cloud."""
+    def cloud_for(self, motions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Points, colours and tie-break ranks holding every point that can land in the image for
+        a motion within the bound of ``motions``: the crop when the bound holds them all, else the cloud."""
         if bool(self.within_bound(torch.as_tensor(motions, dtype=torch.float64).reshape(-1, 6)).all()):
-            return self.crop_points, self.crop_colors
-        return self.points, self.colors
+            return self.crop_points, self.crop_colors, self.crop_rank
+        return self.points, self.colors, torch.arange(len(self.points))
 
     def render(self, motions, backend: Backend = "auto") -> tuple[torch.Tensor, torch.Tensor]:
         """``O(V, alpha)`` for motions (B, 6): images (B, C, H, W) and depth (B, H, W)."""
