@@ -19,8 +19,8 @@ METHODS: dict[str, Callable[[DictConfig, DictConfig], Method]] = {
 
 
 def build_method(cfg: DictConfig) -> Method:
-    """The method ``cfg.method`` names, on ``cfg.motion`` (``method=motion`` when the config has none)."""
-    method = cfg.get("method") or DictConfig({"name": "motion"})
+    """The method ``cfg.method`` names, on ``cfg.motion``."""
+    method = cfg.method
     try:
         make = METHODS[str(method.name)]
     except KeyError:

@@ -13,7 +13,6 @@ Why the bound covers every pose, occlusion changes included: docs/method.md §8.
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 
 import numba
@@ -25,6 +24,7 @@ from scipy.stats import norm
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
 from mrcert.core.method import ABSTAIN, Certificate, Method
+from mrcert.core.smoothing import SmoothingDistribution, image_generator
 from mrcert.errors import MrcertError
 
 NOISE_BLOCK = 16
@@ -63,8 +63,7 @@ class PixelNoise:
 
     @staticmethod
     def _block(seed: int, block: int, shape) -> torch.Tensor:
-        digest = hashlib.sha256(f"mrcert/pixel-noise/{seed}/{block}".encode()).digest()
-        g = torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
+        g = image_generator(seed, block, "pixel noise")
         return torch.randn((NOISE_BLOCK, *shape), generator=g, dtype=torch.float32)
 
 
@@ -314,11 +313,8 @@ class PixelwiseSmoothing(Method):
         )
 
     def crop_bound(self, sigmas: float) -> CropBound:
-        if is_translation(self.axis):
-            box = [0.0, 0.0, 0.0]
-            box[axis_index(self.axis)] = self.half_width
-            return CropBound(tuple(box))
-        return CropBound((0.0, 0.0, 0.0), self.half_width, roll_only=self.axis == "rz")
+        """The interval's motions: motion smoothing's bound for one standard deviation of ``half_width``."""
+        return SmoothingDistribution((self.axis,), (self.half_width,)).crop_bound(1.0)
 
     def certify(self, smoothed, render, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
         """Every frame certified at ``alpha / frames``; the interval when :func:`interval_certified`."""
