@@ -68,7 +68,7 @@ def run(args, arch: str) -> None:
             ],
         )
     bundle = load(cfg.data)
-    dist = SmoothingDistribution.from_config(cfg.motion)
+    dist = SmoothingDistribution.from_config(None, cfg.motion)
     samples = bundle.samples(crop=dist.crop_bound(6.0))
     sample = samples[0]
     device = torch.device(args.device)

@@ -55,6 +55,12 @@ def reference(checkpoints, tmp_path_factory) -> dict[str, pd.DataFrame]:
     return rows
 
 
+def test_a_certificate_counts_the_camera_poses_it_projected(reference):
+    """Motion smoothing renders each of its n0 + n samples once: the cost a table reports."""
+    for rows in reference.values():
+        assert (rows.projected == 8 + 200).all()
+
+
 def store_runs(out: Path, where: str = "") -> list:
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
     return mlflow.search_runs(search_all_experiments=True, filter_string=where, output_format="list")

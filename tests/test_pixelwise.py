@@ -167,6 +167,7 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     metrics = run_task(cfg, tmp_path / "c")
     log = read_log(tmp_path / "c" / "certify.tsv")
     assert len(log) == 2 and set(log.radius) <= {0.0, 0.01} and (log.n == 3 * 40).all()
+    assert (log.projected == 3).all()  # each frame rendered once, for its votes and its bounds
     assert metrics["mean_samples"] == 120
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     runs = mlflow.search_runs(search_all_experiments=True, filter_string="attributes.status = 'FINISHED'")
@@ -187,6 +188,9 @@ def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_pa
     pixelwise = key(["model.variant=augmented", "method=pixelwise"])
     assert key(["model.variant=augmented", "method=pixelwise", "method.certify.frames=5"]) == pixelwise
     assert key(["model.variant=augmented", "method=pixelwise", "method.sigma=0.5"]) != pixelwise
+    # Pixel noise never sees the motion: one pixel-noise model serves every axis.
+    assert key(["model.variant=augmented", "method=pixelwise", "motion=rx"]) == pixelwise
+    assert key(["model.variant=augmented", "motion=rx"]) != motion
     # The key of method=motion runs is the one they had before methods existed: no method.* in it.
     values = identify(compose_cfg(["task=train", "model.variant=augmented"], tmp_path), TASKS["train"].identity).values
     assert not any(k.startswith("method") for k in values)

@@ -222,6 +222,12 @@ def test_result_log_truncates_a_torn_line_and_checks_its_header(tmp_path):
     assert log.done() == {3} and log.path.read_text().endswith("\n")
     with pytest.raises(MrcertError, match="expected idx b seconds"):
         ResultLog(log.path, ["idx", "b", "seconds"]).done()
+    # A log begun by older code, which wrote fewer columns, resumes: its rows are kept, the new cells empty.
+    newer = ResultLog(log.path, ["idx", "a", "seconds", "projected"])
+    assert newer.done() == {3}
+    newer.append({"idx": 5, "a": 2.5, "seconds": 0.2, "projected": 9})
+    rows = pd.read_csv(log.path, sep="\t")
+    assert rows["idx"].tolist() == [3, 5] and rows["a"].tolist() == [1.5, 2.5] and rows["projected"].isna().tolist() == [True, False]
 
 
 def test_smooth_and_attack_tasks(trained, tmp_path):

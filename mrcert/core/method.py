@@ -9,7 +9,9 @@ every task: ``task=train`` renders an augmented model's training images under
 camera motion smoothing (:class:`~mrcert.core.smoothing.SmoothingDistribution`, ``method=motion``)
 and pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing``, ``method=pixelwise``);
 :data:`mrcert.core.methods.METHODS` names them. A new method is a class here, a line there,
-a schema in ``mrcert/infra/schema.py`` and its YAML in ``conf/method/``.
+a schema in ``mrcert/infra/schema.py`` and its YAML in ``conf/method/``; what it refuses (its
+parameters, a motion or a task mode it cannot serve) it says in :meth:`Method.from_config`,
+which config validation calls before any run opens.
 """
 
 from __future__ import annotations
@@ -17,9 +19,10 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import torch
+from omegaconf import DictConfig
 
 from mrcert.core.crop import CropBound
 
@@ -57,6 +60,14 @@ class Method(ABC):
     """The motion axes it certifies against (one, or several for Theorem 1's combinations)."""
     sigmas: tuple[float, ...]
     """Its noise scales, one per axis (motion units) or one (pixel units)."""
+    sequential: ClassVar[bool] = False
+    """Whether CERTIFY's sequential mode (``task.sequential``) applies: it certifies one view."""
+
+    @classmethod
+    @abstractmethod
+    def from_config(cls, method: DictConfig, motion: DictConfig) -> Method:
+        """The method the ``method`` and ``motion`` config groups describe; a value it cannot
+        serve raises :class:`~mrcert.errors.ConfigError` naming the key."""
 
     @property
     def name(self) -> str:

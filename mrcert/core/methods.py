@@ -3,26 +3,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 from omegaconf import DictConfig
 
 from mrcert.core.method import Method
 from mrcert.core.pixelwise import PixelwiseSmoothing
 from mrcert.core.smoothing import SmoothingDistribution
-from mrcert.errors import MrcertError
+from mrcert.errors import ConfigError
 
-METHODS: dict[str, Callable[[DictConfig, DictConfig], Method]] = {
-    "motion": lambda method, motion: SmoothingDistribution.from_config(motion),
-    "pixelwise": PixelwiseSmoothing.from_config,
-}
+METHODS: dict[str, type[Method]] = {"motion": SmoothingDistribution, "pixelwise": PixelwiseSmoothing}
 
 
 def build_method(cfg: DictConfig) -> Method:
     """The method ``cfg.method`` names, on ``cfg.motion``."""
     method = cfg.method
-    try:
-        make = METHODS[str(method.name)]
-    except KeyError:
-        raise MrcertError(f"method={method.name!r} is not allowed: one of {', '.join(METHODS)}") from None
-    return make(method, cfg.motion)
+    if method.name not in METHODS:
+        raise ConfigError("method.name", method.name, f"one of {', '.join(METHODS)}")
+    return METHODS[str(method.name)].from_config(method, cfg.motion)

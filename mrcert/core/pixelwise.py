@@ -25,7 +25,7 @@ from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
 from mrcert.core.method import ABSTAIN, Certificate, Method
 from mrcert.core.smoothing import SmoothingDistribution, image_generator
-from mrcert.errors import MrcertError
+from mrcert.errors import ConfigError, MrcertError
 
 NOISE_BLOCK = 16
 """Pixel-noise draws come in blocks of this many images, each block from its own seeded
@@ -270,17 +270,17 @@ class PixelwiseSmoothing(Method):
     def __post_init__(self):
         axis_index(self.axis)
         if not self.sigma > 0:
-            raise MrcertError(f"method.sigma={self.sigma} is not allowed: the pixel noise must be > 0")
+            raise ConfigError("method.sigma", self.sigma, "> 0 (the pixel noise, in units of the [0, 1] image)")
         if not self.half_width > 0:
-            raise MrcertError(f"method.certify.half_width={self.half_width} is not allowed: it must be > 0")
+            raise ConfigError("method.certify.half_width", self.half_width, "> 0 (the motion's unit)")
         if int(self.frames) != self.frames or self.frames < 2:
-            raise MrcertError(f"method.certify.frames={self.frames} is not allowed: an integer >= 2")
+            raise ConfigError("method.certify.frames", self.frames, "an integer >= 2")
 
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> PixelwiseSmoothing:
         if motion.get("axes"):
-            raise MrcertError(f"method=pixelwise certifies an interval on one axis; motion={motion.axis} has several")
-        return cls(str(motion.axis), float(method.sigma), float(method.certify.half_width), int(method.certify.frames))
+            raise ConfigError("motion", motion.get("axis"), "one axis: method=pixelwise certifies an interval on one")
+        return cls(str(motion.axis), float(method.sigma), float(method.certify.half_width), method.certify.frames)
 
     @property
     def axes(self) -> tuple[str, ...]:
@@ -322,11 +322,13 @@ class PixelwiseSmoothing(Method):
         if sample is None:
             raise MrcertError("pixel-wise certification needs a test sample's renderer (TestSample.renderer())")
         frames = frame_motions(self.axis, self.half_width, self.frames)
-        certs = [smoothed.certify_view(render, n0, n, alpha / self.frames, generator, f) for f in frames]
+        images = render(frames)  # each frame projected once, for its votes and for the bounds
+        certs = [
+            smoothed.certify_view(lambda _frame, k=k: images[k : k + 1], n0, n, alpha / self.frames, generator, f)
+            for k, f in enumerate(frames)
+        ]
         points, colors, rank = sample.cloud_for(frames)
-        left, right = piece_bounds(
-            points, colors, sample.K, self.axis, frames, render(frames), sample.background, rank=rank
-        )
+        left, right = piece_bounds(points, colors, sample.K, self.axis, frames, images, sample.background, rank=rank)
         classes = np.array([c.prediction for c in certs])
         radii = np.array([c.radius for c in certs])
         agreed = bool((classes >= 0).all() and (classes == classes[0]).all())

@@ -47,9 +47,12 @@ class SmoothingDistribution(Method):
                 raise MrcertError(f"smoothing sigma for {a} must be > 0, got {s}")
         licensed(self.axes, self.sigmas)
 
+    sequential = True
+
     @classmethod
-    def from_config(cls, motion: DictConfig) -> SmoothingDistribution:
-        """``motion.axes`` + ``motion.sigmas`` (multi-axis), else ``motion.axis`` + ``motion.sigma``."""
+    def from_config(cls, method: DictConfig | None, motion: DictConfig) -> SmoothingDistribution:
+        """``motion.axes`` + ``motion.sigmas`` (multi-axis), else ``motion.axis`` + ``motion.sigma``
+        (``method=motion`` has no parameters of its own)."""
         if motion.get("axes"):
             return cls(tuple(motion.axes), tuple(float(s) for s in motion.sigmas))
         return cls((str(motion.axis),), (float(motion.sigma),))

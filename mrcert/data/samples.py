@@ -142,13 +142,16 @@ class TestSample:
         )
 
 
-@dataclass(frozen=True)
+@dataclass
 class SampleRenderer:
     """:meth:`TestSample.renderer`: a callable ``motions -> images`` that also names its sample
-    (a method that reasons about the cloud itself, such as pixel-wise smoothing, reads it)."""
+    (a method that reasons about the cloud itself, such as pixel-wise smoothing, reads it) and
+    counts the camera poses it has projected (``projected``: a certificate's rendering cost)."""
 
     sample: TestSample
     backend: Backend = "auto"
+    projected: int = 0
 
     def __call__(self, motions: torch.Tensor) -> torch.Tensor:
+        self.projected += len(motions)
         return self.sample.render(motions, self.backend)[0]

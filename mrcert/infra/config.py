@@ -111,8 +111,6 @@ RULES: dict[str, Rule] = {
     "num_shards": (_positive_int, "an integer >= 1"),
     "crop_sigmas": (_positive, "a finite number > 0"),
     "look": (_positive_int, "an integer >= 1"),
-    "frames": (lambda v: _positive_int(v) and v >= 2, "an integer >= 2"),
-    "half_width": (_positive, "a finite number > 0 (the motion's unit)"),
     "sigmas": (
         lambda v: isinstance(v, list) and len(v) > 0 and all(_positive(x) for x in v),
         "a non-empty list of finite numbers > 0",
@@ -229,21 +227,17 @@ def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
         )
 
 
-def _method(data: dict) -> None:
-    """The method is one mrcert has, and what a task asks of it is something it does."""
-    from mrcert.core.methods import METHODS
+def _method(cfg: DictConfig, data: dict) -> None:
+    """The method is one mrcert has, it accepts its parameters and the motion, and it does what
+    the task asks of it (built here once, so that a refusal comes before any run opens)."""
+    from mrcert.core.methods import METHODS, build_method
 
-    name = data.get("method", {}).get("name", "motion")
-    if name not in METHODS:
-        raise ConfigError("method.name", name, f"one of {', '.join(METHODS)}")
-    if name == "pixelwise" and data.get("motion", {}).get("axes"):
-        raise ConfigError(
-            "motion", data["motion"].get("axis"), "one axis: method=pixelwise certifies an interval on one"
-        )
-    if name == "pixelwise" and data.get("task", {}).get("sequential"):
-        raise ConfigError(
-            "task.sequential", True, "false with method=pixelwise (sequential CERTIFY is motion smoothing's)"
-        )
+    if "method" not in data or "motion" not in data:
+        return
+    build_method(cfg)
+    name = data["method"]["name"]
+    if data.get("task", {}).get("sequential") and not METHODS[name].sequential:
+        raise ConfigError("task.sequential", True, f"false with method={name} (sequential CERTIFY certifies one view)")
 
 
 def validate(cfg: DictConfig) -> None:
@@ -279,7 +273,7 @@ def validate(cfg: DictConfig) -> None:
             licensed(tuple(motion["axes"]), tuple(motion.get("sigmas") or ()))
         except (MrcertError, ValueError) as exc:
             raise ConfigError("motion.axes", motion["axes"], str(exc)) from None
-    _method(data)
+    _method(cfg, data)
     device = data.get("device", "auto")
     if not (
         device in ("auto", "cpu", "cuda")

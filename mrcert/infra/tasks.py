@@ -79,6 +79,7 @@ TASKS: dict[str, Task] = {
                 ("model.variant", "vanilla", "motion"),
                 ("model.variant", "vanilla", "method"),
                 MOTION_SMOOTHING,
+                ("method.name", "pixelwise", "motion"),  # pixel noise: one model serves every axis
             ),
             files=DATA_FILES,
         ),

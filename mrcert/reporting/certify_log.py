@@ -25,7 +25,7 @@ from mrcert.errors import MrcertError
 log = logging.getLogger(__name__)
 
 COHEN_COLUMNS = ["idx", "label", "predict", "radius", "correct", "time"]
-EXTRA_COLUMNS = ["count_a", "n0", "n", "p_a_lower", "sigma", "axis", "seconds"]
+EXTRA_COLUMNS = ["count_a", "n0", "n", "p_a_lower", "sigma", "axis", "seconds", "projected"]
 COLUMNS = COHEN_COLUMNS + EXTRA_COLUMNS
 
 
@@ -99,8 +99,11 @@ class ResultLog:
         lines = text.splitlines()
         if not lines:
             return set()
-        if lines[0].split("\t") != self.columns:
+        header = lines[0].split("\t")
+        if header != self.columns[: len(header)]:
             raise MrcertError(f"{self.path} has header {lines[0]!r}, expected {' '.join(self.columns)}")
+        if len(header) < len(self.columns):  # older code wrote fewer columns: its rows stay, those cells empty
+            self.path.write_text("\n".join(["\t".join(self.columns), *lines[1:]]) + "\n")
         return {int(line.split("\t", 1)[0]) for line in lines[1:]}
 
     def append(self, row: dict) -> None:

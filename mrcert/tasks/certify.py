@@ -60,6 +60,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "count_a": cert.count_a,
             "n0": int(t.n0),
             "n": cert.n,
+            "projected": render.projected,  # camera poses rendered for this certificate
             "p_a_lower": float(cert.p_a_lower),
             "sigma": "+".join(map(repr, dist.sigmas)),
             "axis": dist.name,

@@ -68,25 +68,31 @@ def to_device(images: torch.Tensor, device: torch.device) -> torch.Tensor:
 
 @torch.inference_mode()
 def evaluate(
-    model: nn.Module, images: torch.Tensor, labels: torch.Tensor, device, batch: int, seen: Method | None = None
+    model: nn.Module,
+    images: torch.Tensor,
+    labels: torch.Tensor,
+    device,
+    batch: int,
+    seen: Method | None = None,
+    seed: int = 0,
 ) -> tuple[float, float]:
     """(accuracy, mean cross-entropy) of ``model`` on the images, each perturbed as ``seen``
     perturbs training batches (a pixel-noise model is only ever used on noisy images); image
-    ``i``'s noise comes from its own generator, the same at every call and in any batches."""
+    ``i``'s noise comes from its own generator of ``seed``, the same at every call and in any batches."""
     model.eval()
     correct, loss = 0, 0.0
     for s in range(0, len(labels), batch):
         x = to_device(images[s : s + batch], torch.device(device))
         if seen is not None:
-            x = torch.cat([seen.perturb(x[j : j + 1], image_generator(0, "evaluation", s + j)) for j in range(len(x))])
+            x = torch.cat([seen.perturb(x[j : j + 1], image_generator(seed, "evaluation", s + j)) for j in range(len(x))])
         logits = model(x).float().cpu()
         correct += int((logits.argmax(1) == labels[s : s + batch]).sum())
         loss += float(nn.functional.cross_entropy(logits, labels[s : s + batch], reduction="sum"))
     return correct / max(len(labels), 1), loss / max(len(labels), 1)
 
 
-def accuracy(model: nn.Module, images, labels, device, batch: int, seen: Method | None = None) -> float:
-    return evaluate(model, images, labels, device, batch, seen)[0]
+def accuracy(model: nn.Module, images, labels, device, batch: int, seen: Method | None = None, seed: int = 0) -> float:
+    return evaluate(model, images, labels, device, batch, seen, seed)[0]
 
 
 def better(val: tuple[float, float], best: tuple[float, float] | None) -> bool:
@@ -184,10 +190,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "epoch_seconds": time.perf_counter() - began,
         }
         # With no validation images (train.val_fraction=0) every epoch replaces best.pt: the last is kept.
-        val = evaluate(model, val_x, val_y, device, t.eval_batch_size, augment) if len(val_y) else None
+        val = evaluate(model, val_x, val_y, device, t.eval_batch_size, augment, int(cfg.seed)) if len(val_y) else None
         if val is not None:
             history["val_acc"], history["val_loss"] = val
-        history["epoch_test_acc"] = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment)  # recorded only
+        history["epoch_test_acc"] = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment, int(cfg.seed))  # recorded only
         ctx.tracker.log_metrics(history, step=epoch)
         weights = {k: v.cpu() for k, v in model.state_dict().items()}
         if val is None or better(val, best):
@@ -215,7 +221,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     # The test images, once, for the record: the selected model's accuracy on them.
     chosen = torch.load(best_path, map_location="cpu", weights_only=True)
     model.load_state_dict(chosen["model"])
-    test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment)
+    test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment, int(cfg.seed))
     summary = {"test_acc": test_acc, "best_epoch": chosen["epoch"] + 1}
     summary |= {"best_val_acc": best[0], "best_val_loss": best[1]} if best is not None else {}
     ctx.tracker.log_metrics(summary)
