@@ -19,8 +19,8 @@ from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra import config as mrcert_config
 from mrcert.infra.checkpoints import bind_checkpoint
 from mrcert.infra.identity import RunIdentity, identify
-from mrcert.infra.tasks import TASKS, RunContext
-from mrcert.infra.tracking import fail_parent, find_runs, finished_run, key_lock, log_files_under, task_run
+from mrcert.infra.tasks import TASKS
+from mrcert.infra.tracking import RunContext, fail_parent, find_runs, finished_run, key_lock, log_files_under, task_run
 from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")

@@ -79,7 +79,7 @@ def integer(v, low: int) -> bool:
 ALLOWED = {
     "motion.sigma": lambda v: number(v) and v > 0,
     "motion.radius": lambda v: number(v) and v >= 0,
-    "motion.axis": lambda v: isinstance(v, str) and all(a in AXES for a in v.split("+")),
+    "motion.axis": lambda v: v in AXES,  # a one-axis motion (several: motion.axes)
     "motion.radius_step": lambda v: number(v) and v > 0,
     "task.n0": lambda v: integer(v, 1),
     "task.n": lambda v: integer(v, 1),

@@ -138,6 +138,7 @@ EXPERIMENT_TASKS = {
     "sweep": ("certify",),
     "results": ("train", "certify", "smooth", "attack"),
     "learning_curve": ("train",),
+    "side_by_side": ("train", "certify"),
 }
 
 

@@ -228,3 +228,20 @@ def test_a_pixel_noise_model_is_validated_and_tested_on_noisy_images():
     assert accuracy(NoiseDetector(), flat, labels, "cpu", 3) == 0.0
     noisy = [evaluate(NoiseDetector(), flat, labels, "cpu", size, method) for size in (3, 8)]
     assert noisy[0] == pytest.approx(noisy[1], rel=1e-6)
+
+
+def test_a_pixelwise_run_reports_certified_accuracy_for_its_interval():
+    """A pixel-wise certificate covers [-a, a] and nothing beyond: the run's headline certified
+    accuracy is at a, not at motion.radius (where no pixel-wise certificate can reach)."""
+    import pandas as pd
+
+    from mrcert.infra.tasks import TASKS
+
+    cfg = compose_cfg(["task=certify", "method=pixelwise", "method.certify.half_width=0.001"])
+    assert float(cfg.motion.radius) > 0.001
+    log = pd.DataFrame({"idx": [0, 1, 2, 3], "predict": [0, 1, -1, 2], "correct": [1, 1, 0, 0],
+                        "radius": [0.001, 0.0, 0.0, 0.001], "n": 4000, "seconds": 1.0})  # fmt: skip
+    assert TASKS["certify"].summarize(log, cfg)["certified_accuracy"] == 0.25
+    motion = compose_cfg(["task=certify"])
+    log["radius"] = [float(motion.motion.radius)] * 2 + [0.0, 0.0]
+    assert TASKS["certify"].summarize(log, motion)["certified_accuracy"] == 0.5  # motion smoothing: at motion.radius

@@ -227,7 +227,11 @@ def test_result_log_truncates_a_torn_line_and_checks_its_header(tmp_path):
     assert newer.done() == {3}
     newer.append({"idx": 5, "a": 2.5, "seconds": 0.2, "projected": 9})
     rows = pd.read_csv(log.path, sep="\t")
-    assert rows["idx"].tolist() == [3, 5] and rows["a"].tolist() == [1.5, 2.5] and rows["projected"].isna().tolist() == [True, False]
+    assert (
+        rows["idx"].tolist() == [3, 5]
+        and rows["a"].tolist() == [1.5, 2.5]
+        and rows["projected"].isna().tolist() == [True, False]
+    )
 
 
 def test_smooth_and_attack_tasks(trained, tmp_path):

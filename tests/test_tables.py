@@ -394,3 +394,35 @@ def test_progress_is_a_log_line_every_few_seconds_when_nobody_watches(caplog):
         assert list(progress(range(5), "quiet", interval=3600.0)) == [0, 1, 2, 3, 4]
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 5 and lines[-1].startswith("certify tz: 5/5 done")  # pytest's stderr is no terminal
+
+
+def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
+    """make side-by-side on tiny data: a motion-augmented model certified by motion smoothing
+    (experiment=results) and a pixel-noise model by pixel-wise smoothing (experiment=side_by_side,
+    one interval) give a pair of rows whose numbers are those of their per-image logs, on the
+    pixel-wise run's images, with each method's cost per image."""
+    from mrcert.reporting import side_by_side
+
+    shared = [*SETTINGS, "task.n0=8", "task.n=40"]
+    motion = ["experiment=results", "motion=tz", "model.variant=augmented"]
+    pixelwise = ["experiment=side_by_side", "method.certify.half_width=0.001", "method.certify.frames=3"]
+    run(tmp_path, [*motion, *SETTINGS, "task=train"], "cms-train")
+    run(tmp_path, [*motion, *shared, "task=certify"], "cms")
+    run(tmp_path, [*pixelwise, *SETTINGS, "task=train"], "pws-train")
+    run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    src = tables.Source(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
+    df = side_by_side.runs(src)
+    cms, pws = (read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"]) for name in ("cms", "pws"))
+    assert len(pws) < len(cms) and set(pws.idx) < set(cms.idx)  # every 10th image
+    assert list(df["frames"].isna()) == [True, False] and (df["half_width"] == 0.001).all()
+    motion, pixel = df.iloc[0], df.iloc[1]
+    same = cms[cms.idx.isin(pws.idx)]
+    assert motion["certified accuracy"] == ((same.correct == 1) & (same.radius >= 0.001) & (same.predict >= 0)).mean()
+    assert pixel["certified accuracy"] == ((pws.correct == 1) & (pws.radius >= 0.001) & (pws.predict >= 0)).mean()
+    assert motion["images"] == pixel["images"] == len(pws)
+    assert (motion["poses projected / image"], motion["forward passes / image"]) == (48, 48)
+    assert (pixel["poses projected / image"], pixel["forward passes / image"]) == (3, 3 * 48)
+    assert pixel["seconds / image"] == pws.seconds.mean()
+    fig = side_by_side.figure(df)
+    assert len(fig.axes[0].lines) == 2  # motion smoothing's curve and pixel-wise smoothing's point

@@ -25,6 +25,8 @@ import torch
 from omegaconf import DictConfig
 
 from mrcert.core.crop import CropBound
+from mrcert.core.geometry import AXES
+from mrcert.errors import ConfigError
 
 ABSTAIN = -1
 """The smoothed classifier's answer when it cannot decide at the requested confidence."""
@@ -42,6 +44,14 @@ class Certificate:
     count_a: int
     p_a_lower: float
     n: int = 0  # estimation samples drawn (the sequential mode may stop early; several frames add up)
+
+
+def single_axis(motion: DictConfig) -> str:
+    """``motion.axis`` of a one-axis motion config (no ``motion.axes``)."""
+    axis = str(motion.axis)
+    if axis not in AXES:
+        raise ConfigError("motion.axis", axis, f"one of {', '.join(AXES)} (several: motion.axes, with motion.sigmas)")
+    return axis
 
 
 class ViewCertifier(Protocol):
@@ -110,6 +120,12 @@ class Method(ABC):
     def radius(self, p_a_lower: float) -> float:
         """The radius of Cohen's certificate at one view for a lower bound on ``pA``, in the
         units of the method's noise."""
+
+    def judged_at(self, radius: float) -> float:
+        """The radius a certify run's certified accuracy is reported at, for the motion's
+        ``radius`` (``motion.radius``): that radius, unless the method certifies a region of
+        its own."""
+        return radius
 
     @abstractmethod
     def region(self) -> str:

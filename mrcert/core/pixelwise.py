@@ -23,7 +23,7 @@ from scipy.stats import norm
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
-from mrcert.core.method import ABSTAIN, Certificate, Method
+from mrcert.core.method import ABSTAIN, Certificate, Method, single_axis
 from mrcert.core.smoothing import SmoothingDistribution, image_generator
 from mrcert.errors import ConfigError, MrcertError
 
@@ -280,7 +280,7 @@ class PixelwiseSmoothing(Method):
     def from_config(cls, method: DictConfig, motion: DictConfig) -> PixelwiseSmoothing:
         if motion.get("axes"):
             raise ConfigError("motion", motion.get("axis"), "one axis: method=pixelwise certifies an interval on one")
-        return cls(str(motion.axis), float(method.sigma), float(method.certify.half_width), method.certify.frames)
+        return cls(single_axis(motion), float(method.sigma), float(method.certify.half_width), method.certify.frames)
 
     @property
     def axes(self) -> tuple[str, ...]:
@@ -305,6 +305,10 @@ class PixelwiseSmoothing(Method):
 
     def radius(self, p_a_lower: float) -> float:
         return self.sigma * float(norm.ppf(p_a_lower))
+
+    def judged_at(self, radius: float) -> float:
+        """The interval's half-width: all a certificate can reach."""
+        return self.half_width
 
     def region(self) -> str:
         return (

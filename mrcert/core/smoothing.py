@@ -22,7 +22,7 @@ from scipy.stats import binomtest, norm
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, compose, is_translation
-from mrcert.core.method import ABSTAIN, Certificate, Method, Render
+from mrcert.core.method import ABSTAIN, Certificate, Method, Render, single_axis
 from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
 from mrcert.errors import MrcertError
 
@@ -55,7 +55,7 @@ class SmoothingDistribution(Method):
         (``method=motion`` has no parameters of its own)."""
         if motion.get("axes"):
             return cls(tuple(motion.axes), tuple(float(s) for s in motion.sigmas))
-        return cls((str(motion.axis),), (float(motion.sigma),))
+        return cls((single_axis(motion),), (float(motion.sigma),))
 
     def region(self) -> str:
         """What a certified radius R means for this distribution."""

@@ -1,9 +1,12 @@
-"""The one table of tasks: name -> the function that runs it, what defines its result (its
-:class:`~mrcert.infra.identity.Identity`) and the per-image log it writes.
+"""The one table of tasks: name -> everything about a task that is not its computation -- the
+function that runs it, what defines its result (its :class:`~mrcert.infra.identity.Identity`),
+the per-image log it writes and that log's columns, the headline metrics computed from that log
+(what its MLflow run logs when it ends and what a table cell shows), the metrics the runs page
+shows, and the run's name.
 
-Each entry names its function lazily (``"module:function"``) so that ``mrcert --help`` and
+Each entry names its functions lazily (``"module:function"``) so that ``mrcert --help`` and
 config validation do not import torch-heavy code. A task function takes the composed config
-and a :class:`RunContext` and returns a dict of headline metrics.
+and a :class:`~mrcert.infra.tracking.RunContext` and returns a dict of headline metrics.
 """
 
 from __future__ import annotations
@@ -11,21 +14,14 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from mrcert.infra.identity import PARTITION, Identity
-from mrcert.infra.tracking import Tracker
 
-
-@dataclass(frozen=True)
-class RunContext:
-    """Where a task writes (its run directory) and what it logs through."""
-
-    output_dir: Path
-    tracker: Tracker
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 @dataclass(frozen=True)
@@ -38,10 +34,49 @@ class Task:
     """Whether a FINISHED run of the same run key may stand in for a new one (``skip_finished``)."""
     log: str | None = None
     """The per-image log the task writes (in its run folder and artifacts), for tables and shards."""
+    columns: tuple[str, ...] = ()
+    """The log's columns, in order."""
+    metrics: str | None = None
+    """``"module:function"``: ``(log, cfg) -> dict``, the headline metrics of a (whole, or merged
+    from shards) log: what the run logs when it ends and what a table cell shows."""
+    headline: tuple[str, ...] = ()
+    """Of those, the ones the MLflow runs page shows as columns."""
+    title: Callable[[DictConfig], str] = lambda cfg: f"{cfg.task.name} {cfg.data.name}"
+    """The run's name: what it is, in words, what tells runs apart first (the runs page cuts long names)."""
 
-    def load(self) -> Callable[[DictConfig, RunContext], dict[str, Any]]:
-        module, func = self.target.split(":")
-        return getattr(importlib.import_module(module), func)
+    def load(self) -> Callable[[DictConfig, Any], dict[str, Any]]:
+        """The task's function: ``(cfg, RunContext) -> headline metrics``."""
+        return _function(self.target)
+
+    def summarize(self, log: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
+        """The headline metrics of the task's per-image ``log``."""
+        return _function(self.metrics)(log, cfg)
+
+
+def _function(target: str) -> Callable:
+    module, func = target.split(":")
+    return getattr(importlib.import_module(module), func)
+
+
+def _model_title(cfg: DictConfig) -> str:
+    """``certify tz augmented small_cnn`` (plus a method other than motion smoothing, the attack's
+    k, the shard): a train, certify, smooth or attack run."""
+    task = str(cfg.task.name)
+    ignored = TASKS[task].identity.ignored(cfg)
+    words = [task, str(cfg.motion.axis), str(cfg.method.name), str(cfg.model.variant), str(cfg.model.arch)]
+    if cfg.method.name == "motion" or "method" in ignored:
+        words.remove(str(cfg.method.name))
+    if "motion" in ignored:  # a model that never sees the motion (vanilla, pixel noise) has no axis
+        words.remove(str(cfg.motion.axis))
+    if task == "attack":
+        words.append(f"k={cfg.attack.k}")
+    if int(OmegaConf.select(cfg, "task.num_shards", default=1) or 1) > 1:
+        words.append(f"shard {cfg.task.shard}/{cfg.task.num_shards}")
+    return " ".join(words)
+
+
+CERTIFY_COLUMNS = ("idx", "label", "predict", "radius", "correct", "time")
+"""The columns of Cohen et al.'s certify logs, which an imported log needs and ours begins with."""
 
 
 DATA_FILES = ("data.path", "data.poses")
@@ -83,6 +118,8 @@ TASKS: dict[str, Task] = {
             ),
             files=DATA_FILES,
         ),
+        headline=("test_acc",),
+        title=_model_title,
     ),
     "certify": Task(
         "mrcert.tasks.certify:run",
@@ -91,9 +128,20 @@ TASKS: dict[str, Task] = {
             EVALUATION, ignore_when=(MOTION_SMOOTHING, ("task.sequential", False, "task.look"))
         ),  # fixed n: no looks
         log="certify.tsv",
+        columns=(*CERTIFY_COLUMNS, "count_a", "n0", "n", "p_a_lower", "sigma", "axis", "seconds", "projected"),
+        metrics="mrcert.reporting.metrics:certify",
+        headline=("certified_accuracy", "clean_accuracy", "mean_samples"),
+        title=_model_title,
     ),
     "smooth": Task(
-        "mrcert.tasks.smooth:run", "smoothed benign accuracy: PREDICT at each test pose", EVALUATION, log="smooth.tsv"
+        "mrcert.tasks.smooth:run",
+        "smoothed benign accuracy: PREDICT at each test pose",
+        EVALUATION,
+        log="smooth.tsv",
+        columns=("idx", "label", "predict", "correct", "n", "axis", "seconds"),
+        metrics="mrcert.reporting.metrics:smooth",
+        headline=("smoothed_benign_accuracy",),
+        title=_model_title,
     ),
     "attack": Task(
         "mrcert.tasks.attack:run",
@@ -104,12 +152,29 @@ TASKS: dict[str, Task] = {
             ignores=tuple(i for i in EVALUATION.ignores if i != "attack"),
         ),
         log="attack.tsv",
+        columns=(
+            "idx",
+            "label",
+            "axis",
+            "k",
+            "base_benign",
+            "base_robust",
+            "base_worst",
+            "smoothed_robust",
+            "smoothed_worst",
+            "smoothed_failure",
+            "seconds",
+        ),
+        metrics="mrcert.reporting.metrics:attack",
+        headline=("smoothed_robust_accuracy", "base_benign_accuracy"),
+        title=_model_title,
     ),
     "tables": Task(
         "mrcert.tasks.tables:run",
         "the paper's tables and figure from finished MLflow runs",
         Identity(defines=("task", "profile"), ignores=("data", "model", "motion", "method", "seed", "attack", "train")),
         reusable=False,  # its result depends on the store's runs, not only on its config
+        title=lambda cfg: f"tables {cfg.task.experiment or 'paper'}",
     ),
     "import": Task(
         "mrcert.tasks.importer:run",
@@ -122,5 +187,9 @@ TASKS: dict[str, Task] = {
             partition=("task.path",),
         ),
         log="certify.tsv",
+        columns=CERTIFY_COLUMNS,  # what an imported log needs
+        metrics="mrcert.reporting.metrics:imported",
+        headline=("certified_accuracy", "clean_accuracy"),
+        title=lambda cfg: f"import {cfg.task.axis} {cfg.task.arch} {cfg.task.variant}",
     ),
 }

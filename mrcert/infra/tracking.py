@@ -31,6 +31,7 @@ from mrcert.infra.config import plain
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.runtime import code_version, machine
 from mrcert.infra.store import FileLock, ensure_sqlite_store, probe_server
+from mrcert.infra.tasks import TASKS
 
 log = logging.getLogger(__name__)
 
@@ -104,16 +105,11 @@ def ensure_experiment(tracking: DictConfig) -> str:
         return exp.experiment_id
 
 
-RUNS_VIEW_METRICS = (
-    "certified_accuracy",
-    "clean_accuracy",
-    "smoothed_benign_accuracy",
-    "smoothed_robust_accuracy",
-    "base_benign_accuracy",
-    "test_acc",
-    "mean_samples",
+RUNS_VIEW_METRICS = tuple(
+    dict.fromkeys(m for task in sorted(TASKS.values(), key=lambda t: t.log is None) for m in task.headline)
 )
-"""The headline metrics of certify, smooth, attack and train, in the order the runs page shows them."""
+"""The tasks' headline metrics, in the order the runs page shows them: those of the tasks with a
+per-image log (certify first) before a train run's."""
 
 RUNS_VIEW = "mrcert"
 """Name of the runs page's view that :func:`ui_link` opens (MLflow's shared view state)."""
@@ -175,26 +171,6 @@ def ui_link_for(outputs: str, base: str, experiment: str = "mrcert") -> str:
     return ui_link(tracking, base)
 
 
-def run_name(cfg: DictConfig) -> str:
-    """What the run is, in words, what tells runs apart first (the runs page cuts long names):
-    ``certify tz augmented resnet18``, ``render testscene``..."""
-    task = str(cfg.task.name)
-    if task in ("train", "certify", "smooth", "attack"):
-        words = [task, str(cfg.motion.axis), str(cfg.model.variant), str(cfg.model.arch)]
-        if task == "train" and cfg.model.variant == "vanilla":
-            words.remove(str(cfg.motion.axis))  # a vanilla model has no axis
-        if task == "attack":
-            words.append(f"k={cfg.attack.k}")
-        if int(OmegaConf.select(cfg, "task.num_shards", default=1) or 1) > 1:
-            words.append(f"shard {cfg.task.shard}/{cfg.task.num_shards}")
-        return " ".join(words)
-    if task == "import":
-        return f"import {cfg.task.axis} {cfg.task.arch} {cfg.task.variant}"
-    if task == "tables":
-        return f"tables {cfg.task.experiment or 'paper'}"
-    return f"{task} {cfg.data.name}"
-
-
 def run_tags(cfg: DictConfig) -> dict[str, str]:
     """Tags that tables and look-ups filter on."""
     select = lambda key: OmegaConf.select(cfg, key, default=None)  # noqa: E731
@@ -211,6 +187,14 @@ def run_tags(cfg: DictConfig) -> dict[str, str]:
     if overrides:
         tags.update(OmegaConf.to_container(overrides, resolve=True))
     return {k: str(v) for k, v in tags.items() if v is not None}
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """Where a task writes (its run directory) and what it logs through."""
+
+    output_dir: Path
+    tracker: Tracker
 
 
 @dataclass
@@ -444,7 +428,10 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
             }
         )
         run_ctx = mlflow.start_run(
-            experiment_id=experiment_id, parent_run_id=parent_id, tags=tags, run_name=run_name(cfg)
+            experiment_id=experiment_id,
+            parent_run_id=parent_id,
+            tags=tags,
+            run_name=TASKS[str(cfg.task.name)].title(cfg),
         )
     try:
         with run_ctx as run:

@@ -27,7 +27,6 @@ from mrcert.infra.config import CONF_DIR
 from mrcert.infra.identity import identify
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting import certify_log
-from mrcert.reporting.metrics import SUMMARIES
 
 KEY, CELL = "tags.mrcert.key", "tags.mrcert.cell"
 
@@ -167,7 +166,7 @@ class RunIndex:
         log = self.log(cell)
         if log is None:
             return float("nan")
-        return float(SUMMARIES[cell.cfg.task.name](log, cell.cfg).get(name, float("nan")))
+        return float(TASKS[str(cell.cfg.task.name)].summarize(log, cell.cfg).get(name, float("nan")))
 
 
 def _run_config(run: pd.Series) -> DictConfig:

@@ -21,12 +21,12 @@ import numpy as np
 import pandas as pd
 
 from mrcert.errors import MrcertError
+from mrcert.infra.tasks import CERTIFY_COLUMNS, TASKS
 
 log = logging.getLogger(__name__)
 
-COHEN_COLUMNS = ["idx", "label", "predict", "radius", "correct", "time"]
-EXTRA_COLUMNS = ["count_a", "n0", "n", "p_a_lower", "sigma", "axis", "seconds", "projected"]
-COLUMNS = COHEN_COLUMNS + EXTRA_COLUMNS
+COHEN_COLUMNS = list(CERTIFY_COLUMNS)
+COLUMNS = list(TASKS["certify"].columns)
 
 
 def format_row(row: dict, columns: list[str]) -> str:

@@ -1,18 +1,21 @@
 """The headline metrics of each task's per-image log (whole, or merged from shards): what a task
-logs when it ends and what a table cell shows, computed by the same function."""
+logs when it ends and what a table cell shows, computed by the same function (the task table,
+:data:`mrcert.infra.tasks.TASKS`, names each task's)."""
 
 from __future__ import annotations
 
 import pandas as pd
 from omegaconf import DictConfig
 
+from mrcert.core.methods import build_method
 from mrcert.core.smoothing import ABSTAIN
 from mrcert.reporting import certify_log
 
 
 def certify(df: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
-    """Certified accuracy at ``motion.radius`` and the rest of :func:`certify_log.metrics`."""
-    radius = float(cfg.motion.radius)
+    """Certified accuracy at ``motion.radius`` (or the region the method certifies, e.g. pixel-wise
+    smoothing's interval) and the rest of :func:`certify_log.metrics`."""
+    radius = build_method(cfg).judged_at(float(cfg.motion.radius))
     metrics = certify_log.metrics(df, radius, float(cfg.motion.radius_step), radius)[0]
     if "n" in df.columns:
         metrics["mean_samples"] = float(df["n"].mean())
@@ -48,7 +51,3 @@ def attack(df: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
     if cfg.task.smoothed:
         metrics["smoothed_robust_accuracy"] = float((df["smoothed_robust"] == 1).mean())
     return metrics
-
-
-SUMMARIES = {"certify": certify, "import": imported, "smooth": smooth, "attack": attack}
-"""Task name -> the metrics of its log."""

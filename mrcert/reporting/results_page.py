@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mrcert.reporting import learning_curve
+from mrcert.reporting import learning_curve, side_by_side
 from mrcert.reporting.cells import Cell
+from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
 from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust
 from mrcert.reporting.writers import as_text, markdown
@@ -232,6 +233,40 @@ def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def side_by_side_section(src: Source, page: Path) -> list[str]:
+    """Camera motion smoothing beside pixel-wise smoothing, when ``make side-by-side`` has run."""
+    pair = side_by_side.runs(src)
+    if not len(pair):
+        return []
+    plot = page.with_name(f"{page.stem}_side_by_side.png")
+    save(side_by_side.figure(pair), [plot])
+    reported = pd.DataFrame(
+        PIXELWISE_REPORTED, columns=["axis", "half-width (m)", "method", "model", "pixel sigma", "frames", "certified"]
+    ).fillna("-")
+    pixelwise = pair[pair["frames"].notna()]
+    return [
+        "## Camera motion smoothing beside pixel-wise smoothing",
+        "",
+        f"`make side-by-side` (`mrcert -m experiment={side_by_side.EXPERIMENT} task=train,certify`): a pixel-noise "
+        "model of the same architecture, certified by pixel-wise smoothing (docs/method.md §8) for whole intervals "
+        "[-a, a], beside the motion-augmented model above on the same test images "
+        f"({_share(int(pixelwise.iloc[0]['skip']))}). "
+        "Pixel-wise smoothing certifies an interval or nothing: its certified accuracy at radius a is the share of "
+        "images certified for the whole interval; motion smoothing's is the share with a certified radius of at "
+        "least a. Fixed-n CERTIFY (n0 + n per frame for pixel-wise smoothing, at alpha / frames each).",
+        "",
+        markdown(as_text(side_by_side.table(pair))),
+        "",
+        f"![camera motion smoothing and pixel-wise smoothing]({plot.name})",
+        "",
+        "For reference, as the pixel-wise smoothing authors' released logs report it (their MetaRoom, "
+        "their models; not these test views):",
+        "",
+        markdown(as_text(reported)),
+        "",
+    ]
+
+
 def write_page(
     src: Source,
     experiment: str,
@@ -339,6 +374,7 @@ def write_page(
             why(models, curve),
             "",
         ]
+    lines += side_by_side_section(src, page)
     if filled:
         lines += [
             "## Time per stage",

@@ -20,27 +20,8 @@ from omegaconf import DictConfig
 from mrcert.core.geometry import axis_index
 from mrcert.core.smoothing import ABSTAIN, image_generator
 from mrcert.errors import MrcertError
-from mrcert.infra.tasks import RunContext
-from mrcert.reporting import metrics as summaries
-from mrcert.reporting.certify_log import read_log
-from mrcert.tasks.evaluation import log_outputs, prepare, result_log, run_per_image
-
-COLUMNS = [
-    "idx",
-    "label",
-    "axis",
-    "k",
-    "base_benign",
-    "base_robust",
-    "base_worst",
-    "smoothed_robust",
-    "smoothed_worst",
-    "smoothed_failure",
-    "seconds",
-]
-
-
-LOG = "attack.tsv"
+from mrcert.infra.tracking import RunContext
+from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize
 
 
 def attack_motions(attack: DictConfig, axis: str, seed: int, index: int) -> torch.Tensor:
@@ -64,7 +45,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if not ev.method.single:
         raise MrcertError(f"task=attack perturbs one axis; motion={ev.method.name} smooths several")
     axis = ev.method.axes[0]
-    log = result_log(ctx, LOG, COLUMNS)
+    log = result_log(ctx, "attack")
 
     @torch.inference_mode()
     def attack_one(i: int) -> dict[str, Any]:
@@ -107,6 +88,4 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         return row
 
     run_per_image(log, ev.indices, attack_one, f"attack {cfg.attack.name} k={cfg.attack.k}")
-    metrics = summaries.attack(read_log(log.path, COLUMNS), cfg)
-    log_outputs(ctx, metrics, log.path)
-    return metrics
+    return summarize(ctx, "attack", log.path, cfg)

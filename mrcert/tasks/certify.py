@@ -12,16 +12,16 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.core.smoothing import image_generator
-from mrcert.infra.tasks import RunContext
+from mrcert.infra.tracking import RunContext
 from mrcert.reporting import certify_log
 from mrcert.reporting.plots import curve_figure, save
-from mrcert.tasks.evaluation import log_outputs, prepare, result_log, run_per_image
+from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize
 
 
-def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, region: str) -> dict[str, float]:
-    """Metrics, the radius-grid table and the curve of a certify log, logged to the run."""
+def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, region: str) -> None:
+    """The radius-grid table and the curve of a certify log, and what its radius means, logged to the run."""
     max_radius = max(float(df["radius"].max()) if len(df) else 0.0, cfg_radius)
-    metrics, grid = certify_log.metrics(df, cfg_radius, step, max_radius)
+    _, grid = certify_log.metrics(df, cfg_radius, step, max_radius)
     grid_path = ctx.output_dir / "certified_accuracy.csv"
     grid.to_csv(grid_path, index=False)
     for k, acc in enumerate(grid["certified_accuracy"]):
@@ -30,18 +30,15 @@ def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, regi
     ctx.tracker.log_figure(fig, "certified_accuracy.png")
     save(fig, [ctx.output_dir / "certified_accuracy.png"])
     (ctx.output_dir / "region.txt").write_text(region + "\n")
-    log_outputs(ctx, metrics, grid_path, ctx.output_dir / "region.txt")
-    return metrics
-
-
-LOG = "certify.tsv"
+    for path in (grid_path, ctx.output_dir / "region.txt"):
+        ctx.tracker.log_artifact(path)
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
     dist = ev.method
-    log = result_log(ctx, LOG)
+    log = result_log(ctx, "certify")
 
     def certify_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
@@ -67,10 +64,13 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         }
 
     run_per_image(log, ev.indices, certify_one, f"certify {dist.name}")
-    ctx.tracker.log_artifact(log.path)
-    df = certify_log.read_log(log.path)
     title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, smoothing {dist.name}"
-    metrics = report(df, float(cfg.motion.radius), float(cfg.motion.radius_step), ctx, title, dist.region())
-    metrics["mean_samples"] = float(df["n"].mean())
-    ctx.tracker.log_metrics({"mean_samples": metrics["mean_samples"]})
-    return metrics
+    report(
+        certify_log.read_log(log.path),
+        dist.judged_at(float(cfg.motion.radius)),
+        float(cfg.motion.radius_step),
+        ctx,
+        title,
+        dist.region(),
+    )
+    return summarize(ctx, "certify", log.path, cfg)

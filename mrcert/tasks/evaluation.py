@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -21,8 +22,9 @@ from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import resolve_device
-from mrcert.infra.tasks import RunContext
-from mrcert.reporting.certify_log import COLUMNS, ResultLog
+from mrcert.infra.tasks import TASKS
+from mrcert.infra.tracking import RunContext
+from mrcert.reporting.certify_log import ResultLog, read_log
 
 
 def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards: int) -> list[int]:
@@ -69,10 +71,17 @@ def prepare(cfg: DictConfig) -> Evaluation:
     return Evaluation(bundle, samples, model, smoothed, indices, device, str(t.get("backend", "auto")))
 
 
-def result_log(ctx: RunContext, name: str, columns: list[str] = COLUMNS) -> ResultLog:
-    """The run's per-image log ``name`` in its folder, owned by this run (rows of any other run
-    found there are set aside, never adopted)."""
-    return ResultLog(ctx.output_dir / name, columns, owner=ctx.tracker.owner)
+def result_log(ctx: RunContext, task: str) -> ResultLog:
+    """The per-image log of ``task`` (its name and columns from the task table) in the run's
+    folder, owned by this run (rows of any other run found there are set aside, never adopted)."""
+    return ResultLog(ctx.output_dir / TASKS[task].log, list(TASKS[task].columns), owner=ctx.tracker.owner)
+
+
+def summarize(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[str, float]:
+    """The task's headline metrics of its finished per-image log (the task table's), logged with the log."""
+    metrics = TASKS[task].summarize(read_log(log, list(TASKS[task].columns)), cfg)
+    log_outputs(ctx, metrics, log)
+    return metrics
 
 
 def run_per_image(log: ResultLog, indices: list[int], work: Callable[[int], dict[str, Any]], desc: str) -> int:

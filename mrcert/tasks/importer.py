@@ -13,17 +13,19 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.core.smoothing import SmoothingDistribution
-from mrcert.infra.tasks import RunContext
+from mrcert.infra.tasks import TASKS
+from mrcert.infra.tracking import RunContext
 from mrcert.reporting.certify_log import read_log
-from mrcert.tasks.certify import LOG, report
+from mrcert.tasks.certify import report
+from mrcert.tasks.evaluation import summarize
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     df = read_log(t.path)
-    kept = ctx.output_dir / LOG
+    kept = ctx.output_dir / TASKS["import"].log
     shutil.copyfile(t.path, kept)
-    ctx.tracker.log_artifact(kept)
     dist = SmoothingDistribution((str(t.axis),), (float(t.sigma),))
     title = f"imported {t.dataset} {t.arch} {t.variant}, smoothing {t.axis}"
-    return report(df, float(t.radius), float(t.radius_step), ctx, title, dist.region())
+    report(df, float(t.radius), float(t.radius_step), ctx, title, dist.region())
+    return summarize(ctx, "import", kept, cfg)

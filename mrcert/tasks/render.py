@@ -24,7 +24,7 @@ from mrcert.data.sources import is_scene, load, load_scene
 from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
 from mrcert.infra.runtime import resolve_device
-from mrcert.infra.tasks import RunContext
+from mrcert.infra.tracking import RunContext
 from mrcert.reporting.imaging import contact_sheet, save_png
 
 

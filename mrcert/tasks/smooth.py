@@ -7,19 +7,14 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.core.smoothing import image_generator
-from mrcert.infra.tasks import RunContext
-from mrcert.reporting import metrics as summaries
-from mrcert.reporting.certify_log import read_log
-from mrcert.tasks.evaluation import log_outputs, prepare, result_log, run_per_image
-
-COLUMNS = ["idx", "label", "predict", "correct", "n", "axis", "seconds"]
-LOG = "smooth.tsv"
+from mrcert.infra.tracking import RunContext
+from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
-    log = result_log(ctx, LOG, COLUMNS)
+    log = result_log(ctx, "smooth")
 
     def predict_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
@@ -35,6 +30,4 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         }
 
     run_per_image(log, ev.indices, predict_one, "smooth")
-    metrics = summaries.smooth(read_log(log.path, COLUMNS), cfg)
-    log_outputs(ctx, metrics, log.path)
-    return metrics
+    return summarize(ctx, "smooth", log.path, cfg)

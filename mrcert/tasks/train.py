@@ -39,7 +39,7 @@ from mrcert.errors import MrcertError
 from mrcert.infra import checkpoints
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import resolve_device
-from mrcert.infra.tasks import RunContext
+from mrcert.infra.tracking import RunContext
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,9 @@ def evaluate(
     for s in range(0, len(labels), batch):
         x = to_device(images[s : s + batch], torch.device(device))
         if seen is not None:
-            x = torch.cat([seen.perturb(x[j : j + 1], image_generator(seed, "evaluation", s + j)) for j in range(len(x))])
+            x = torch.cat(
+                [seen.perturb(x[j : j + 1], image_generator(seed, "evaluation", s + j)) for j in range(len(x))]
+            )
         logits = model(x).float().cpu()
         correct += int((logits.argmax(1) == labels[s : s + batch]).sum())
         loss += float(nn.functional.cross_entropy(logits, labels[s : s + batch], reduction="sum"))
@@ -193,7 +195,9 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         val = evaluate(model, val_x, val_y, device, t.eval_batch_size, augment, int(cfg.seed)) if len(val_y) else None
         if val is not None:
             history["val_acc"], history["val_loss"] = val
-        history["epoch_test_acc"] = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment, int(cfg.seed))  # recorded only
+        history["epoch_test_acc"] = accuracy(
+            model, test_x, test_y, device, t.eval_batch_size, augment, int(cfg.seed)
+        )  # recorded only
         ctx.tracker.log_metrics(history, step=epoch)
         weights = {k: v.cpu() for k, v in model.state_dict().items()}
         if val is None or better(val, best):

@@ -1,0 +1,159 @@
+"""Camera motion smoothing beside pixel-wise smoothing (``experiment=side_by_side``, docs/method.md §8).
+
+One pair of rows per finished pixel-wise certify run of the experiment's sweep (axis, interval
+``[-a, a]``, frames): that run, and the fixed-n CERTIFY run of ``experiment=results`` with
+the motion-augmented model of the same axis and architecture, restricted to the same test
+images. Each row gives the certified accuracy at the motion radius ``a`` (pixel-wise smoothing
+certifies the whole interval or nothing; motion smoothing certifies ``|motion| < R``), the
+camera poses projected and the base classifier's forward passes per image, and seconds per image.
+The figure draws motion smoothing's certified accuracy against radius on those images and
+pixel-wise smoothing's certified accuracy at each interval.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from mrcert.core.geometry import unit
+from mrcert.reporting import certify_log
+from mrcert.reporting.tables import Source, sweep_combos
+
+EXPERIMENT = "side_by_side"
+MOTION_EXPERIMENT = "results"
+"""Where the motion-augmented models' certify runs come from (the same views, axis and model)."""
+
+
+def _costs(log: pd.DataFrame, frames: int) -> dict[str, float]:
+    """Per image: camera poses projected (the log's ``projected``; a log written before it was
+    recorded projects each of its ``n0 + n`` samples once, one frame) and forward passes
+    (``n0`` per frame plus the ``n`` estimation samples of all frames)."""
+    passes = log["n"] + log["n0"] * frames
+    projected = log["projected"] if "projected" in log and log["projected"].notna().all() else passes
+    return {
+        "poses projected / image": float(projected.mean()),
+        "forward passes / image": float(passes.mean()),
+        "seconds / image": float(log["seconds"].mean()),
+    }
+
+
+def runs(src: Source, experiment: str = EXPERIMENT) -> pd.DataFrame:
+    """Two rows (motion smoothing, then pixel-wise smoothing) per finished pixel-wise run of the
+    experiment, on the pixel-wise run's images; empty when none has run."""
+    rows = []
+    head = (f"profile={src.profile}", "task=certify")
+    of_motion = tuple(o for o in src.overrides if not o.startswith("method."))  # method.*: pixel-wise's own
+    for combo in sweep_combos(experiment):
+        pixelwise = src.index.cell((f"experiment={experiment}", *head, *src.overrides, *combo))
+        log = src.index.log(pixelwise)
+        if log is None:
+            continue
+        cfg = pixelwise.cfg
+        axis, half_width, frames = (
+            str(cfg.motion.axis),
+            float(cfg.method.certify.half_width),
+            int(cfg.method.certify.frames),
+        )
+        motion = src.index.cell(
+            (
+                f"experiment={MOTION_EXPERIMENT}",
+                *head,
+                *of_motion,
+                f"motion={axis}",
+                f"model.variant={cfg.model.variant}",
+            )
+        )
+        motion_log = src.index.log(motion)
+        images = set(log["idx"])
+        common = {
+            "axis": axis,
+            "interval": f"+-{half_width:g} {unit(axis)}",
+            "half_width": half_width,
+            "model": str(cfg.model.arch),
+            "images": len(images),
+            "skip": int(cfg.task.skip),
+        }
+        if motion_log is not None:
+            same = motion_log[motion_log["idx"].isin(images)]
+            rows.append(
+                common
+                | {
+                    "method": f"motion smoothing (sigma {float(motion.cfg.motion.sigma):g} {unit(axis)})",
+                    "frames": np.nan,
+                    "certified accuracy": certify_log.certified_accuracy(same, half_width),
+                    **_costs(same, 1),
+                    "run_id": motion.run_ids[0],
+                    "log": same,
+                }
+            )
+        rows.append(
+            common
+            | {
+                "method": f"pixel-wise smoothing (sigma {float(cfg.method.sigma):g})",
+                "frames": frames,
+                "certified accuracy": certify_log.certified_accuracy(log, half_width),
+                **_costs(log, frames),
+                "run_id": pixelwise.run_ids[0],
+                "log": log,
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def table(df: pd.DataFrame) -> pd.DataFrame:
+    """The page's table: one row per method and interval."""
+    out = df[
+        [
+            "axis",
+            "interval",
+            "method",
+            "model",
+            "frames",
+            "images",
+            "certified accuracy",
+            "poses projected / image",
+            "forward passes / image",
+            "seconds / image",
+        ]
+    ].copy()
+    out["frames"] = out["frames"].map(lambda f: "-" if pd.isna(f) else str(int(f)))
+    out["certified accuracy"] = out["certified accuracy"].map(lambda v: f"{v:.3f}")
+    for column in ("poses projected / image", "forward passes / image"):
+        out[column] = out[column].map(lambda v: f"{v:,.0f}")
+    out["seconds / image"] = out["seconds / image"].map(lambda v: f"{v:.1f}")
+    return out
+
+
+def figure(df: pd.DataFrame):
+    """Per axis: motion smoothing's certified accuracy against radius (step curve, on the
+    pixel-wise runs' images) and pixel-wise smoothing's at each interval (points)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes = list(dict.fromkeys(df["axis"]))
+    fig, grid = plt.subplots(1, len(axes), figsize=(5 * len(axes), 3.6), squeeze=False)
+    for ax, axis in zip(grid.ravel(), axes, strict=True):
+        rows = df[df["axis"] == axis]
+        smallest = float(rows["half_width"].min())
+        for _, row in rows[rows["frames"].isna()].drop_duplicates("images").iterrows():
+            radii, acc = certify_log.curve(row["log"])
+            radii = np.maximum(radii, smallest / 10)  # log scale: radius 0 drawn at the left edge
+            ax.step(np.append(radii, radii[-1] * 1.05), np.append(acc, 0.0), where="pre", label=row["method"])
+        for method, group in rows[rows["frames"].notna()].groupby("method"):
+            ax.plot(group["half_width"], group["certified accuracy"], "o", label=f"{method}, whole interval")
+            for _, row in group.iterrows():
+                ax.annotate(f"{int(row['frames'])} frames", (row["half_width"], row["certified accuracy"]), fontsize=7)
+        ax.set(
+            xscale="log",
+            xlabel=f"radius / half-width of the interval ({unit(axis)})",
+            ylabel="certified accuracy",
+            ylim=(-0.02, 1.02),
+            title=f"{axis}, {rows['images'].iloc[0]} test images",
+        )
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("Camera motion smoothing and pixel-wise smoothing on the same test views")
+    fig.tight_layout()
+    return fig
