@@ -241,8 +241,9 @@ def side_by_side_section(src: Source, page: Path) -> list[str]:
     plot = page.with_name(f"{page.stem}_side_by_side.png")
     save(side_by_side.figure(pair), [plot])
     reported = pd.DataFrame(
-        PIXELWISE_REPORTED, columns=["axis", "half-width (m)", "method", "model", "pixel sigma", "frames", "certified"]
-    ).fillna("-")
+        [[("-" if v is None else str(v)) for v in row] for row in PIXELWISE_REPORTED],
+        columns=["axis", "half-width (m)", "method", "model", "pixel sigma", "frames", "certified accuracy"],
+    )
     pixelwise = pair[pair["frames"].notna()]
     return [
         "## Camera motion smoothing beside pixel-wise smoothing",

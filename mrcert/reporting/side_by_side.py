@@ -133,7 +133,7 @@ def figure(df: pd.DataFrame):
     import matplotlib.pyplot as plt
 
     axes = list(dict.fromkeys(df["axis"]))
-    fig, grid = plt.subplots(1, len(axes), figsize=(5 * len(axes), 3.6), squeeze=False)
+    fig, grid = plt.subplots(1, len(axes), figsize=(max(7, 5 * len(axes)), 3.8), squeeze=False)
     for ax, axis in zip(grid.ravel(), axes, strict=True):
         rows = df[df["axis"] == axis]
         smallest = float(rows["half_width"].min())
@@ -154,6 +154,6 @@ def figure(df: pd.DataFrame):
         )
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("Camera motion smoothing and pixel-wise smoothing on the same test views")
+    fig.suptitle("Motion smoothing and pixel-wise smoothing, same test views")
     fig.tight_layout()
     return fig
