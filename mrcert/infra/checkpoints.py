@@ -1,4 +1,12 @@
-"""Checkpoints: saving them atomically, and binding an evaluation to exactly one of them.
+"""Checkpoints: their format (the one place that writes and reads them), saving them
+atomically, and binding an evaluation to exactly one of them.
+
+``task=train`` writes two files per run. ``best.pt`` (:func:`save_model`) is the selected model
+an evaluation loads: its weights, the epoch and validation accuracy that selected it, and the
+model's description (:func:`describe`: architecture, classes, variant, method, axis,
+``model.net`` config, how it was validated). ``last.pt`` (:func:`save_progress`) is what a
+resumed run continues from: the same description, the last epoch's weights, the optimiser,
+scheduler and gradient-scaler states, and the best validation result so far.
 
 ``model.checkpoint`` may be a file path or an MLflow artifact URI (``runs:/<run_id>/<path>``).
 When it is null, the train config is derived from the evaluation's own config (data, profile,
@@ -27,13 +35,68 @@ BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
 
 
-def save(state: dict[str, Any], path: Path) -> None:
+def _save(state: dict[str, Any], path: Path) -> None:
     """Write ``state`` so that a crash never leaves a truncated file behind."""
     import torch
 
     tmp = path.with_name(path.name + ".tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
+
+
+def describe(cfg: DictConfig, classes: list[str], method: str | None, validation: dict[str, Any]) -> dict[str, Any]:
+    """What every checkpoint of the model ``cfg`` trains says about it (``method``: the
+    certification method it was trained for, None for a vanilla model)."""
+    from omegaconf import OmegaConf
+
+    return {
+        "arch": cfg.model.arch,
+        "num_classes": len(classes),
+        "classes": list(classes),
+        "variant": cfg.model.variant,
+        "method": method,
+        "axis": cfg.motion.axis,
+        "model_config": OmegaConf.to_container(cfg.model.net, resolve=True),
+        "validation": validation,
+    }
+
+
+def _weights(module) -> dict[str, Any]:
+    return {k: v.cpu() for k, v in module.state_dict().items()}
+
+
+def save_model(path: Path, description: dict[str, Any], model, epoch: int, val_acc: float | None) -> None:
+    """``best.pt``: the selected model (:func:`load_classifier` reads it)."""
+    _save(description | {"model": _weights(model), "epoch": epoch, "val_acc": val_acc}, path)
+
+
+def save_progress(
+    path: Path, description: dict[str, Any], model, optimizer, scheduler, scaler, epoch: int, best
+) -> None:
+    """``last.pt``: where a resumed run continues (:func:`resume`)."""
+    parts = {"optimizer": optimizer, "scheduler": scheduler, "scaler": scaler}
+    state = {name: part.state_dict() for name, part in parts.items()}
+    _save(description | {"model": _weights(model), **state, "epoch": epoch, "best": best}, path)
+
+
+def resume(path: Path, model, optimizer, scheduler, scaler) -> tuple[int, Any]:
+    """Load ``last.pt`` into the training objects; ``(next epoch, best validation result so far)``."""
+    import torch
+
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    scheduler.load_state_dict(state["scheduler"])
+    if "scaler" in state:  # written before mixed precision existed
+        scaler.load_state_dict(state["scaler"])
+    return state["epoch"] + 1, state["best"]
+
+
+def selected_epoch(path: Path, model) -> int:
+    """Load ``best.pt``'s weights into ``model``; the epoch that was selected."""
+    state = read_checkpoint(path)
+    model.load_state_dict(state["model"])
+    return int(state["epoch"])
 
 
 def train_key(cfg: DictConfig, train_identity: Identity) -> str:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torch import nn
 
 from mrcert.core.method import Method
@@ -143,24 +143,9 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     last_path, best_path = ctx.output_dir / checkpoints.LAST, ctx.output_dir / checkpoints.BEST
     start, best = 0, None
     if ctx.tracker.resumed and last_path.is_file():
-        state = torch.load(last_path, map_location="cpu", weights_only=True)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        if "scaler" in state:
-            scaler.load_state_dict(state["scaler"])
-        start, best = state["epoch"] + 1, state["best"]
+        start, best = checkpoints.resume(last_path, model, optimizer, scheduler, scaler)
 
-    meta = {
-        "arch": cfg.model.arch,
-        "num_classes": len(bundle.classes),
-        "classes": bundle.classes,
-        "variant": cfg.model.variant,
-        "method": None if augment is None else cfg.method.name,
-        "axis": cfg.motion.axis,
-        "model_config": OmegaConf.to_container(cfg.model.net, resolve=True),
-        "validation": selection,
-    }
+    description = checkpoints.describe(cfg, bundle.classes, None if augment is None else cfg.method.name, selection)
     history: dict[str, float] = {}
     for epoch in range(start, int(r.epochs)):
         began = time.perf_counter()
@@ -199,22 +184,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             model, test_x, test_y, device, t.eval_batch_size, augment, int(cfg.seed)
         )  # recorded only
         ctx.tracker.log_metrics(history, step=epoch)
-        weights = {k: v.cpu() for k, v in model.state_dict().items()}
         if val is None or better(val, best):
             best = val
-            checkpoints.save(meta | {"model": weights, "epoch": epoch, "val_acc": val[0] if val else None}, best_path)
-        checkpoints.save(
-            meta
-            | {
-                "model": weights,
-                "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(),
-                "scaler": scaler.state_dict(),
-                "epoch": epoch,
-                "best": best,
-            },
-            last_path,
-        )
+            checkpoints.save_model(best_path, description, model, epoch, val[0] if val else None)
+        checkpoints.save_progress(last_path, description, model, optimizer, scheduler, scaler, epoch, best)
         log.info(
             f"epoch {epoch + 1}/{r.epochs}: loss {history['train_loss']:.4f} "
             f"train acc {history['train_acc']:.3f} val acc {history.get('val_acc', float('nan')):.3f} "
@@ -223,10 +196,9 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if not last_path.is_file():
         raise MrcertError(f"train.epochs={r.epochs} trained nothing")
     # The test images, once, for the record: the selected model's accuracy on them.
-    chosen = torch.load(best_path, map_location="cpu", weights_only=True)
-    model.load_state_dict(chosen["model"])
+    chosen = checkpoints.selected_epoch(best_path, model)
     test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment, int(cfg.seed))
-    summary = {"test_acc": test_acc, "best_epoch": chosen["epoch"] + 1}
+    summary = {"test_acc": test_acc, "best_epoch": chosen + 1}
     summary |= {"best_val_acc": best[0], "best_val_loss": best[1]} if best is not None else {}
     ctx.tracker.log_metrics(summary)
     ctx.tracker.log_artifact(best_path, checkpoints.ARTIFACT_DIR)
