@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mrcert.reporting import learning_curve, side_by_side
+from mrcert.reporting import certify_log, learning_curve, side_by_side
 from mrcert.reporting.cells import Cell
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
@@ -53,13 +53,6 @@ def jobs_of(src: Source, experiment: str, k: int) -> list[Job]:
 
 def _pct(x: float) -> str:
     return "n/a" if x is None or np.isnan(x) else f"{x:.3f}"
-
-
-def certified_on(log: pd.DataFrame, radius: float, images: set[int] | None = None) -> float:
-    rows = log if images is None else log[log["idx"].isin(images)]
-    if not len(rows):
-        return float("nan")
-    return float(((rows["correct"] == 1) & (rows["radius"] >= radius) & (rows["predict"] >= 0)).mean())
 
 
 def findings(src: Source, jobs: list[Job]) -> list[str]:
@@ -101,7 +94,7 @@ def findings(src: Source, jobs: list[Job]) -> list[str]:
             continue
         images = set(alog["idx"].tolist())
         radius = float(j.certify.cfg.motion.radius)
-        cert = certified_on(clog, radius, images)
+        cert = certify_log.certified_accuracy(clog[clog["idx"].isin(images)], radius)
         emp = float((alog["smoothed_robust"] == 1).mean())
         rows.append((j, cert, emp))
         ok = clog[(clog["correct"] == 1) & (clog["radius"] >= radius) & (clog["predict"] >= 0)]["idx"]
