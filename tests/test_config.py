@@ -155,7 +155,7 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
     from mrcert.infra.config import plain
     from mrcert.infra.identity import identify
     from mrcert.infra.tasks import TASKS
-    from mrcert.reporting.tables import sweep_combos
+    from mrcert.reporting.source import sweep_combos
 
     assert set(EXPERIMENT_TASKS) == {p.stem for p in (CONF_DIR / "experiment").glob("*.yaml")}
     trained, evaluated = set(), {}

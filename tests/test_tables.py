@@ -16,6 +16,7 @@ from mrcert.__main__ import run_task
 from mrcert.reporting import certify_log, tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
+from mrcert.reporting.source import Source
 from mrcert.reporting.writers import write
 from tests.conftest import TINY, compose_cfg, run_cli
 
@@ -51,7 +52,7 @@ def store(tmp_path_factory):
 
 def source(out: Path, **kw) -> tables.Source:
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    return tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=tuple(SETTINGS), **kw)
+    return Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=tuple(SETTINGS), **kw)
 
 
 def hand(out: Path, name: str, file: str, column: str, value=1) -> float:
@@ -116,7 +117,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=0"], f"{task}-0")
     overrides = tuple([*SETTINGS, "task.skip=1", "task.max=4"])
-    src = tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    src = Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
     early = tables.certified_table(src)
     assert early.loc[("Tz", "Smoothed Vanilla SmallCNN"), ["Benign Acc", "5-pert Emp. Acc"]].isna().all()
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
@@ -124,7 +125,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     assert notes[("Tz / Smoothed Augmented SmallCNN", "Benign Acc")] == "no finished train run for its model"
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=1"], f"{task}-1")
-    src = tables.Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    src = Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
     df = tables.certified_table(src)
     smooth, attack, certify = (
         pd.concat([read_log(out / "runs" / f"{task}-{i}" / f"{task}.tsv", ["idx"]) for i in (0, 1)]) for task in TASKS
@@ -317,7 +318,7 @@ def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
         job = ["experiment=learning_curve", "task=train", f"data.protocol.separation_rule={rule}", *tiny]
         results[rule] = run(tmp_path, [*job, "data.protocol.train.per_class=40", "seed=0"], f"lc-{rule}")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    src = tables.Source(RunIndex.gather("mrcert"), "quick", overrides=tuple(tiny))
+    src = Source(RunIndex.gather("mrcert"), "quick", overrides=tuple(tiny))
     df = learning_curve.runs(src).set_index("separation rule")
     assert sorted(df.index) == ["any", "every"] and (df["training poses per class"] == 40).all()
     for rule, result in results.items():
@@ -411,7 +412,7 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     run(tmp_path, [*pixelwise, *SETTINGS, "task=train"], "pws-train")
     run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    src = tables.Source(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
+    src = Source(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
     df = side_by_side.runs(src)
     cms, pws = (read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"]) for name in ("cms", "pws"))
     assert len(pws) < len(cms) and set(pws.idx) < set(cms.idx)  # every 10th image

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from mrcert.reporting.tables import Source, sweep_combos
+from mrcert.reporting.source import Source, sweep_combos
 
 EXPERIMENT = "learning_curve"
 

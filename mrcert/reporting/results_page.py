@@ -18,7 +18,8 @@ from mrcert.reporting import certify_log, learning_curve, side_by_side
 from mrcert.reporting.cells import Cell
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
-from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, Source, robust
+from mrcert.reporting.source import Source
+from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, robust
 from mrcert.reporting.writers import as_text, markdown
 
 

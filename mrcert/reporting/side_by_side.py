@@ -17,7 +17,7 @@ import pandas as pd
 
 from mrcert.core.geometry import unit
 from mrcert.reporting import certify_log
-from mrcert.reporting.tables import Source, sweep_combos
+from mrcert.reporting.source import Source, sweep_combos
 
 EXPERIMENT = "side_by_side"
 MOTION_EXPERIMENT = "results"

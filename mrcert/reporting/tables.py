@@ -12,31 +12,18 @@ filled each cell (``<table>_sources.csv``/``.md``: run ids and MLflow links). Wi
 
 from __future__ import annotations
 
-import functools
-import itertools
-from dataclasses import dataclass, field
-
 import numpy as np
 import pandas as pd
-from hydra.core.override_parser.overrides_parser import OverridesParser
 
 from mrcert.core.geometry import AXES, unit
 from mrcert.reporting import certify_log, paper_results
-from mrcert.reporting.cells import Cell, RunIndex, compose_config
+from mrcert.reporting.cells import Cell
 from mrcert.reporting.plots import Curve, curve_figure
+from mrcert.reporting.source import Measure, Source
 
 ARCH_NAMES = {"resnet18": "ResNet-18", "resnet50": "ResNet-50", "small_cnn": "SmallCNN"}
 AXIS_NAMES = {"tz": "Tz", "tx": "Tx", "ty": "Ty", "rz": "Rz", "rx": "Rx", "ry": "Ry"}
 AXES_ORDER = paper_results.AXES_ORDER
-
-
-@dataclass(frozen=True)
-class Measure:
-    """What a column shows: a metric of a task's runs, with the overrides that define it."""
-
-    task: str
-    metric: str
-    overrides: tuple[str, ...] = ()
 
 
 SMOOTHED_BENIGN = Measure("smooth", "smoothed_benign_accuracy")
@@ -54,86 +41,6 @@ def base_benign(k: int) -> Measure:
 
 def robust(who: str, k: int) -> Measure:
     return Measure("attack", f"{who}_robust_accuracy", (f"attack.k={k}",))
-
-
-@functools.cache
-def sweep_combos(experiment: str) -> list[tuple[str, ...]]:
-    """Every job of an experiment's sweep as its overrides, in the sweeper's order."""
-    params = compose_config([f"experiment={experiment}"]).hydra.sweeper.params or {}
-    parsed = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()])
-    axes = [
-        [f"{o.key_or_group}={v}" for v in o.sweep_string_iterator()]
-        if o.is_sweep_override()
-        else [f"{o.key_or_group}={o.get_value_element_as_str()}"]
-        for o in parsed
-    ]
-    return list(itertools.product(*axes))
-
-
-@dataclass
-class Source:
-    """Where the tables take their cells from, and the record of which runs filled them.
-
-    ``experiment``: build every table from this experiment (e.g. ``demo``) instead of each
-    table's own; ``overrides``: extra overrides for every cell (e.g. ``seed=1`` when the
-    experiment ran with it); ``archs`` / ``axes``: only these rows; ``certify_task``:
-    ``import`` to take certification cells from imported logs instead of certify runs."""
-
-    index: RunIndex
-    profile: str
-    experiment: str | None = None
-    overrides: tuple[str, ...] = ()
-    archs: tuple[str, ...] | None = None
-    axes: tuple[str, ...] | None = None
-    certify_task: str = "certify"
-    link: str = "{run_id}"
-    provenance: list[dict] = field(default_factory=list)
-
-    def experiment_for(self, own: str) -> str:
-        return self.experiment or own
-
-    def cell(self, experiment: str, combo: tuple[str, ...], measure: Measure) -> Cell:
-        task = self.certify_task if measure.task == "certify" else measure.task
-        fixed = {o.split("=", 1)[0] for o in (*measure.overrides, *self.overrides)}
-        combo = tuple(c for c in combo if c.split("=", 1)[0] not in fixed)
-        return self.index.cell(
-            (f"experiment={experiment}", f"profile={self.profile}", f"task={task}", *combo, *measure.overrides)
-            + self.overrides
-        )
-
-    def rows(self, experiment: str, measure: Measure):
-        """``(combo, cell)`` of the experiment's jobs for ``measure``, filtered by arch and axis."""
-        for combo in sweep_combos(experiment):
-            cell = self.cell(experiment, combo, measure)
-            if self.archs and cell.cfg.model.arch not in self.archs:
-                continue
-            if self.axes and cell.cfg.motion.axis not in self.axes:
-                continue
-            yield combo, cell
-
-    def value(self, table: str, row, column: str, cells: list[Cell], metric: str) -> float:
-        """The metric of ``cells`` (their mean when several), recorded with the runs behind it."""
-        values = [self.index.metric(c, metric) for c in cells]
-        ok = [v for v in values if not np.isnan(v)]
-        value = float(np.mean(ok)) if ok and len(ok) == len(values) else float("nan")
-        runs = [rid for c in cells for rid in c.run_ids]
-        self.provenance.append(
-            {
-                "table": table,
-                "row": " / ".join(map(str, row)) if isinstance(row, tuple) else str(row),
-                "column": column,
-                "value": value,
-                "runs": " ".join(runs),
-                "links": " ".join(self.link.format(run_id=r) for r in runs),
-                "note": "; ".join(sorted({c.note for c in cells if c.note})),
-            }
-        )
-        return value
-
-    def sources(self, table: str) -> pd.DataFrame:
-        """Per cell of ``table``: row, column, value, the runs behind it, their links, why it is empty."""
-        rows = [{k: v for k, v in p.items() if k != "table"} for p in self.provenance if p["table"] == table]
-        return pd.DataFrame(rows, columns=["row", "column", "value", "runs", "links", "note"])
 
 
 def model_label(arch: str, variant: str, smoothed: bool = True) -> str:

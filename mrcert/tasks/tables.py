@@ -21,6 +21,7 @@ from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.plots import save
 from mrcert.reporting.results_page import base_models, jobs_of, write_page
+from mrcert.reporting.source import Source
 from mrcert.reporting.writers import as_text, markdown, write
 
 SOURCES = {"runs": "certify", "import": "import"}
@@ -35,7 +36,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     configure(cfg.tracking)
     experiment_id = ensure_experiment(cfg.tracking)
     named = named_data()
-    src = tables.Source(
+    src = Source(
         RunIndex.gather(cfg.tracking.experiment),
         profile=str(t.profile),
         experiment=t.experiment,
