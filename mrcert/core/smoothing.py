@@ -24,7 +24,7 @@ from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, compose, is_translation
 from mrcert.core.method import ABSTAIN, Certificate, Method, Render, single_axis
 from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
-from mrcert.errors import MrcertError
+from mrcert.errors import ConfigError, MrcertError
 
 DECISIONS = ("predict", "vote")
 """How a smoothed prediction is decided from its votes (:meth:`SmoothedClassifier.decide`)."""
@@ -54,7 +54,10 @@ class SmoothingDistribution(Method):
         """``motion.axes`` + ``motion.sigmas`` (multi-axis), else ``motion.axis`` + ``motion.sigma``
         (``method=motion`` has no parameters of its own)."""
         if motion.get("axes"):
-            return cls(tuple(motion.axes), tuple(float(s) for s in motion.sigmas))
+            try:
+                return cls(tuple(motion.axes), tuple(float(s) for s in motion.sigmas))
+            except (MrcertError, ValueError) as exc:  # an axis, a sigma or a combination Theorem 1 does not license
+                raise ConfigError("motion.axes", list(motion.axes), str(exc)) from None
         return cls((single_axis(motion),), (float(motion.sigma),))
 
     def region(self) -> str:

@@ -19,7 +19,7 @@ from typing import Any
 from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 
 from mrcert.core.geometry import AXES, is_translation
-from mrcert.errors import ConfigError, MrcertError
+from mrcert.errors import ConfigError
 from mrcert.infra.schema import register
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -266,13 +266,6 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")
     motion = data.get("motion", {})
     _motion_scale(motion, data.get("data", {}))
-    if motion.get("axes"):
-        from mrcert.core.smoothing import licensed
-
-        try:
-            licensed(tuple(motion["axes"]), tuple(motion.get("sigmas") or ()))
-        except (MrcertError, ValueError) as exc:
-            raise ConfigError("motion.axes", motion["axes"], str(exc)) from None
     _method(cfg, data)
     device = data.get("device", "auto")
     if not (

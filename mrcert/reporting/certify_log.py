@@ -163,11 +163,16 @@ def concat_logs(logs: list[pd.DataFrame]) -> pd.DataFrame:
     return df.sort_values("idx").reset_index(drop=True)
 
 
+def certified(df: pd.DataFrame, radius: float) -> pd.Series:
+    """Per image: a correct prediction certified with radius >= ``radius`` (an abstention never is)."""
+    return (df["correct"] == 1) & (df["radius"] >= radius) & (df["predict"] >= 0)
+
+
 def certified_accuracy(df: pd.DataFrame, radius: float) -> float:
     """Fraction of images with a correct prediction and radius >= ``radius`` (abstain = wrong)."""
     if len(df) == 0:
         return float("nan")
-    return float(((df["correct"] == 1) & (df["radius"] >= radius) & (df["predict"] >= 0)).mean())
+    return float(certified(df, radius).mean())
 
 
 def radius_grid(step: float, max_radius: float) -> np.ndarray:
@@ -187,12 +192,17 @@ def curve(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     return radii, acc
 
 
+def grid(df: pd.DataFrame, step: float, max_radius: float) -> pd.DataFrame:
+    """The certified accuracy at each radius of :func:`radius_grid`."""
+    radii = radius_grid(step, max_radius)
+    return pd.DataFrame({"radius": radii, "certified_accuracy": [certified_accuracy(df, r) for r in radii]})
+
+
 def metrics(df: pd.DataFrame, radius: float, step: float, max_radius: float) -> tuple[dict[str, float], pd.DataFrame]:
     """Headline metrics and the certified accuracy over the radius grid."""
     abstain = df["predict"] < 0
     correct = (df["correct"] == 1) & ~abstain
-    grid = radius_grid(step, max_radius)
-    table = pd.DataFrame({"radius": grid, "certified_accuracy": [certified_accuracy(df, r) for r in grid]})
+    table = grid(df, step, max_radius)
     out = {
         "num_images": float(len(df)),
         "clean_accuracy": float(correct.mean()) if len(df) else float("nan"),

@@ -98,7 +98,7 @@ def findings(src: Source, jobs: list[Job]) -> list[str]:
         cert = certify_log.certified_accuracy(clog[clog["idx"].isin(images)], radius)
         emp = float((alog["smoothed_robust"] == 1).mean())
         rows.append((j, cert, emp))
-        ok = clog[(clog["correct"] == 1) & (clog["radius"] >= radius) & (clog["predict"] >= 0)]["idx"]
+        ok = clog[certify_log.certified(clog, radius)]["idx"]
         broken = alog[alog["idx"].isin(set(ok.tolist())) & (alog["smoothed_robust"] != 1)]
         certified_broken += len(broken)
         if "smoothed_failure" in broken:

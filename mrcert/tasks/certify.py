@@ -21,7 +21,7 @@ from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summariz
 def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, region: str) -> None:
     """The radius-grid table and the curve of a certify log, and what its radius means, logged to the run."""
     max_radius = max(float(df["radius"].max()) if len(df) else 0.0, cfg_radius)
-    _, grid = certify_log.metrics(df, cfg_radius, step, max_radius)
+    grid = certify_log.grid(df, step, max_radius)
     grid_path = ctx.output_dir / "certified_accuracy.csv"
     grid.to_csv(grid_path, index=False)
     for k, acc in enumerate(grid["certified_accuracy"]):
