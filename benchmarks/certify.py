@@ -51,6 +51,7 @@ def run(args, arch: str) -> None:
     from mrcert.core.smoothing import SmoothedClassifier, SmoothingDistribution, image_generator
     from mrcert.data.sources import load
     from mrcert.infra.config import CONF_DIR
+    from mrcert.infra.runtime import batch_size
 
     torch.set_num_threads(args.threads)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -75,7 +76,7 @@ def run(args, arch: str) -> None:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda: no CUDA device here")
     overlap = args.overlap or device.type == "cuda"
-    batch = int(cfg.task.batch_size)
+    batch = batch_size(cfg.task.batch_size, device)
     eager = build_model(cfg.model, 20).to(device).eval()
     model = for_inference(copy.deepcopy(eager), device)
     motions = dist.sample(1100, image_generator(0, 0))

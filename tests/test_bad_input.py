@@ -89,7 +89,7 @@ ALLOWED = {
     "task.max": lambda v: v is None or integer(v, 1),
     "task.shard": lambda v: integer(v, 0),
     "task.num_shards": lambda v: integer(v, 1),
-    "task.batch_size": lambda v: integer(v, 1),
+    "task.batch_size": lambda v: v == "auto" or integer(v, 1),
     "task.crop_sigmas": lambda v: number(v) and v > 0,
     "data.image.height": lambda v: integer(v, 1),
     "data.image.width": lambda v: integer(v, 1),

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
@@ -106,6 +107,17 @@ def test_default_store_is_an_absolute_sqlite_uri_under_outputs():
     assert Path(cfg.tracking.artifact_location).is_absolute()
 
 
+def test_evaluation_batches_suit_the_device_unless_given():
+    """By default a GPU classifies 200 samples at once and a CPU 16 (docs/performance.md); a number
+    given is used as is, on any device."""
+    from mrcert.infra.runtime import batch_size
+
+    default = compose_cfg(["task=certify"]).task.batch_size
+    assert batch_size(default, torch.device("cuda")) == 200 and batch_size(default, torch.device("cpu")) == 16
+    given = compose_cfg(["task=certify", "task.batch_size=7"]).task.batch_size
+    assert batch_size(given, torch.device("cuda")) == batch_size(given, torch.device("cpu")) == 7
+
+
 @pytest.mark.parametrize(
     "override,key,value,allowed",
     [
@@ -120,6 +132,8 @@ def test_default_store_is_an_absolute_sqlite_uri_under_outputs():
         ("data.image.fx=-3", "data.image.fx", "-3", "> 0"),
         ("task.axes=[tx,up]", "task.axes", "['tx', 'up']", "list of axes"),
         ("device=gpu", "device", "'gpu'", "auto, cpu, cuda or cuda:N"),
+        ("task=certify task.batch_size=big", "task.batch_size", "'big'", "an integer >= 1, or auto"),
+        ("task=certify task.batch_size=0", "task.batch_size", "0", "an integer >= 1, or auto"),
     ],
 )
 def test_bad_values_are_rejected_with_key_value_and_allowed(override, key, value, allowed):

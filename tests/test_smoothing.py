@@ -358,7 +358,7 @@ def test_the_tasks_inference_path_predicts_the_classes_of_the_eager_model(traine
     ev = prepare(cfg)
     eager = build_model(cfg.model, len(ev.bundle.classes)).eval()
     eager.load_state_dict(read_checkpoint(best(trained))["model"])
-    batch = int(cfg.task.batch_size)
+    batch = ev.smoothed.votes.batch_size
     with torch.inference_mode():
         for i in ev.indices[:3]:
             images = ev.render(ev.samples[i])(ev.method.sample(100, image_generator(0, i)))

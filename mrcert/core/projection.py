@@ -101,7 +101,7 @@ def project(
         rank = torch.as_tensor(rank, device=device)  # the same tensor when given one (project() keeps its order)
         if tuple(rank.shape) != (points.shape[0],):
             raise ValueError(f"rank must have shape ({points.shape[0]},), got {tuple(rank.shape)}")
-    R = rotvec_to_matrix(motions[:, 3:])
+    R = rotations(motions)
     t = motions[:, :3]
     intr = tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     if backend == "numba":
@@ -112,6 +112,14 @@ def project(
     winner, depth = _zbuffer_torch(points.to(torch.float64), rank, R, t, intr, height, width, chunk_elements)
     images = _gather_colors(colors, winner, background, height, width)
     return images, depth.view(-1, height, width)
+
+
+def rotations(motions: torch.Tensor) -> torch.Tensor:
+    """The (B, 3, 3) rotations of (B, 6) motions, on the motions' device but always computed on the
+    CPU: CUDA's float64 sin and cos round differently from the CPU's, and matrices made on a GPU
+    moved depths by float rounding there (docs/performance.md), where every device must give the
+    CPU kernel's bits."""
+    return rotvec_to_matrix(motions[:, 3:].cpu()).to(motions.device)
 
 
 def to_uint8(images: torch.Tensor) -> np.ndarray:
@@ -128,7 +136,7 @@ def camera_points(points: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     """
     xyz = torch.as_tensor(points).to(torch.float64)
     motion = torch.as_tensor(motion, dtype=torch.float64, device=xyz.device).reshape(1, 6)
-    r = rotvec_to_matrix(motion[:, 3:])
+    r = rotations(motion)
     if xyz.device.type == "cpu":
         out = np.empty((xyz.shape[0], 3), np.float64)
         _camera_kernel(np.ascontiguousarray(xyz.numpy()), r[0].numpy(), motion[0, :3].numpy(), out)

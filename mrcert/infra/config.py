@@ -116,6 +116,10 @@ RULES: dict[str, Rule] = {
         "a non-empty list of finite numbers > 0",
     ),
 }
+TASK_BATCH_RULE: Rule = (
+    lambda v: v == "auto" or _positive_int(v),
+    "an integer >= 1, or auto (16 on a CPU, 200 on a GPU)",
+)
 RANGE_RULE: Rule = (
     lambda v: isinstance(v, list) and len(v) == 2 and all(_number(x) for x in v) and v[0] <= v[1],
     "a list [low, high] of two finite numbers with low <= high",
@@ -127,6 +131,8 @@ def rule_for(path: str) -> Rule | None:
     name = path.rsplit(".", 1)[-1]
     if path.startswith("task.tags."):
         return None
+    if path == "task.batch_size":
+        return TASK_BATCH_RULE
     return RANGE_RULE if name.endswith("_range") else RULES.get(name)
 
 

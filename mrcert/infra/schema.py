@@ -24,7 +24,7 @@ class Evaluation:
     n: int = MISSING
     alpha: float = MISSING
     decision: str = MISSING
-    batch_size: int = MISSING
+    batch_size: Any = MISSING  # an integer >= 1 or auto: checked by validate
     skip: int = MISSING
     max: int | None = None
     shard: int = MISSING
