@@ -20,6 +20,7 @@ from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 
 from mrcert.core.geometry import AXES, is_translation
 from mrcert.errors import ConfigError
+from mrcert.infra.runtime import AUTO_BATCH
 from mrcert.infra.schema import register
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -118,7 +119,7 @@ RULES: dict[str, Rule] = {
 }
 TASK_BATCH_RULE: Rule = (
     lambda v: v == "auto" or _positive_int(v),
-    "an integer >= 1, or auto (16 on a CPU, 200 on a GPU)",
+    f"an integer >= 1, or auto ({AUTO_BATCH['cpu']} on a CPU, {AUTO_BATCH['cuda']} on a GPU)",
 )
 RANGE_RULE: Rule = (
     lambda v: isinstance(v, list) and len(v) == 2 and all(_number(x) for x in v) and v[0] <= v[1],
