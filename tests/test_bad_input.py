@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
@@ -122,6 +122,7 @@ def motion_in_scale(motion) -> bool:
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(changes=st.dictionaries(st.sampled_from(KEYS), VALUES, min_size=1, max_size=4))
+@example(changes={"task.shard": 1, "device": None})  # a bad shard is reported before a bad device
 def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, changes):
     cfg = OmegaConf.create(OmegaConf.to_container(base_cfg))
     with open_dict(cfg):
@@ -129,8 +130,9 @@ def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, ch
             OmegaConf.update(cfg, key, value, force_add=True)
     bad = {k for k, v in changes.items() if v == "???" or not ALLOWED[k](v)}
     shards = changes.get("task.num_shards", 1)
-    if "task.shard" in changes and not bad and changes["task.shard"] >= shards:
-        bad.add("task.shard")  # a shard outside [0, num_shards)
+    shard_ok = "task.shard" in changes and not {"task.shard", "task.num_shards"} & bad
+    if shard_ok and changes["task.shard"] >= shards:
+        bad.add("task.shard")  # a shard outside [0, num_shards), whatever else is bad
     scale = {"motion.sigma", "motion.radius", "motion.radius_step"}
     if not any(k.startswith("motion.") for k in bad) and not motion_in_scale(cfg.motion):
         bad |= scale  # a motion out of scale may be reported before another key's bad value
