@@ -91,6 +91,20 @@ def test_groups_the_issue_asks_for_exist():
     assert options("tracking") == ["off", "server", "sqlite"]
 
 
+def test_the_learning_curve_reaches_the_training_poses_of_the_page_s_models():
+    """The evidence page's curve must say what the data its Table 3 models train on gives: its sweep
+    covers experiment=results' training poses per class, on the same data and model."""
+    results = compose_cfg(["experiment=results"])
+    curve = compose_cfg(["experiment=learning_curve"])
+    swept = str(curve.hydra.sweeper.params["data.protocol.train.per_class"]).split(",")
+    assert str(results.data.protocol.train.per_class) in swept, (results.data.protocol.train.per_class, swept)
+    assert (curve.data.name, curve.model.arch, curve.model.net.width) == (
+        results.data.name,
+        results.model.arch,
+        results.model.net.width,
+    )
+
+
 @pytest.mark.parametrize(
     "axis,sigma", [("tz", 0.1), ("tx", 0.05), ("ty", 0.05), ("rz", 0.122173), ("rx", 0.0436332), ("ry", 0.0436332)]
 )

@@ -302,7 +302,7 @@ def write_page(
             "attack: 5 uniform perturbations within +-r (PREDICT with "
             f"n = {jobs[0].attack.cfg.task.n} at each). Every column covers "
             f"{_share(int(jobs[0].attack.cfg.task.skip))}, the same images in each. The paper's values are in "
-            "parentheses (MetaRoom, ResNet-18, 120 test images).",
+            "parentheses (MetaRoom, ResNet-18, 500 training poses per class, 120 test images).",
             "",
         ]
     filled = any(c.filled for j in jobs for c in (j.certify, j.smooth, j.attack))
