@@ -130,8 +130,8 @@ def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, ch
             OmegaConf.update(cfg, key, value, force_add=True)
     bad = {k for k, v in changes.items() if v == "???" or not ALLOWED[k](v)}
     shards = changes.get("task.num_shards", 1)
-    shard_ok = "task.shard" in changes and not {"task.shard", "task.num_shards"} & bad
-    if shard_ok and changes["task.shard"] >= shards:
+    both_valid = "task.shard" in changes and not {"task.shard", "task.num_shards"} & bad
+    if both_valid and changes["task.shard"] >= shards:
         bad.add("task.shard")  # a shard outside [0, num_shards), whatever else is bad
     scale = {"motion.sigma", "motion.radius", "motion.radius_step"}
     if not any(k.startswith("motion.") for k in bad) and not motion_in_scale(cfg.motion):
