@@ -275,8 +275,11 @@ def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
     roll = min(abs(a - b) for a in train[:, 2] for b in test[:, 2])
     assert f"{pitch:.1f} in pitch and {roll:.1f} in roll (separation rule `every`)" in page and pitch >= 15
     assert (store / "evidence" / "r_views.png").is_file()
-    # Time per stage: seconds per image from the per-image logs.
+    # Time per stage: seconds per image from the per-image logs, and the machine the run ran on.
+    from mrcert.infra.runtime import machine
+
     assert f"| certify | 1 | {len(clog)} |" in page and f"| {round(clog.seconds.mean(), 2)} |" in page
+    assert f"| {machine()} (1 run) |" in page
 
 
 def test_findings_count_what_the_logs_hold():

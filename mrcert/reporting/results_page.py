@@ -195,8 +195,8 @@ def _verdict(holds: int, total: int) -> str:
 
 def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
     """Time per stage: the runs' wall-clock (start to end, so a run that was interrupted and
-    resumed counts the time it was down) and the seconds per test image measured in the
-    per-image logs (work only)."""
+    resumed counts the time it was down) summed over the stage's runs, the machines they ran
+    on, and the seconds per test image measured in the per-image logs (work only)."""
     runs = {"train": set(), "certify": set(), "smooth": set(), "attack": set()}
     images = {"certify": 0, "smooth": 0, "attack": 0}
     work = {"certify": 0.0, "smooth": 0.0, "attack": 0.0}
@@ -215,12 +215,16 @@ def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
     for stage, ids in runs.items():
         ids = [i for i in ids if i in df.index]
         seconds = float(sum((df.loc[i, "end_time"] - df.loc[i, "start_time"]).total_seconds() for i in ids))
+        machines = df.loc[ids, "tags.mrcert.machine"].dropna() if "tags.mrcert.machine" in df else pd.Series()
         rows.append(
             {
                 "stage": stage,
                 "runs": len(ids),
                 "test images": images.get(stage, ""),
-                "wall-clock (h)": round(seconds / 3600, 2),
+                "run time, summed (h)": round(seconds / 3600, 2),
+                "machines": "; ".join(
+                    f"{m} ({n} run{'s' if n > 1 else ''})" for m, n in machines.value_counts().sort_index().items()
+                ),
                 "seconds per image": round(work[stage] / images[stage], 2) if images.get(stage) else "",
             }
         )
@@ -374,8 +378,10 @@ def write_page(
         lines += [
             "## Time per stage",
             "",
-            "Wall-clock from each run's start to its end (a run that was interrupted and resumed also counts the time "
-            "it was down); seconds per image from the per-image logs.",
+            "Each run's wall-clock from its start to its end (a run that was interrupted and resumed also counts "
+            "the time it was down), summed over the stage's runs: runs that ran side by side on one machine each "
+            "count in full, so the sum is not the stage's elapsed time. Seconds per image from the per-image logs, "
+            "each run's own pace (slower when runs shared a machine); the machines are the ones each run started on.",
             "",
             markdown(times.astype(str)),
             "",
