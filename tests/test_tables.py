@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from mrcert.__main__ import run_task
-from mrcert.reporting import certify_log, tables
+from mrcert.reporting import certify_log, paper_results, tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
 from mrcert.reporting.source import Source
@@ -255,7 +255,14 @@ def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
     alog = read_log(next((store / "runs" / "attack").glob("attack.tsv")), ["idx"])
     radius = float(compose_cfg([*DEMO, "task=certify"], store).motion.radius)
     certified = (clog.correct == 1) & (clog.radius >= radius) & (clog.predict >= 0)
-    row = f"| {slog.correct.mean():.3f} | {alog.smoothed_robust.mean():.3f} | {certified.mean():.3f} |"
+    # Each cell beside the paper's value for its axis and variant, of the paper's ResNet-18.
+    paper = [
+        tables.paper_value("smoothed", "benign", None, "tz", "resnet18", "vanilla"),
+        tables.paper_value("smoothed", "perturbed", 5, "tz", "resnet18", "vanilla"),
+        paper_results.CERTIFIED[("tz", "resnet18", "vanilla")],
+    ]
+    ours = [slog.correct.mean(), alog.smoothed_robust.mean(), certified.mean()]
+    row = "| " + " | ".join(f"{o:.3f} ({p:.3f})" for o, p in zip(ours, paper, strict=True)) + " |"
     assert f"| Tz | Smoothed Vanilla SmallCNN {row}" in page
     # Finding 2: smoothed vs base 5-perturbed accuracy on the same images.
     assert f"Tz vanilla {alog.smoothed_robust.mean():.3f} vs {alog.base_robust.mean():.3f}" in page

@@ -20,7 +20,7 @@ from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.plots import save
-from mrcert.reporting.results_page import base_models, jobs_of, write_page
+from mrcert.reporting.results_page import PAPER_ARCH, base_models, jobs_of, write_page
 from mrcert.reporting.source import Source
 from mrcert.reporting.writers import as_text, markdown, write
 
@@ -91,7 +91,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     stem = out / "certified_accuracy_vs_radius"
     figure, _ = save(fig, [stem.with_suffix(".png"), stem.with_suffix(".pdf")])
     if t.page:
-        table = tables.certified_table(src, show_paper=True, name="page", sequential=True)
+        table = tables.certified_table(src, show_paper=True, name="page", sequential=True, paper_arch=PAPER_ARCH)
         command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
         page, experiment = Path(t.page), str(t.experiment or "table3")
         cells = [c for _, c in src.rows(experiment, tables.SMOOTHED_BENIGN)]
