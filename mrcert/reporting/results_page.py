@@ -19,7 +19,7 @@ from mrcert.reporting.cells import Cell
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
 from mrcert.reporting.source import Source
-from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, robust
+from mrcert.reporting.tables import ARCH_NAMES, AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, robust
 from mrcert.reporting.writers import as_text, markdown
 
 
@@ -137,7 +137,7 @@ def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
 
 NORMAL = 0.858  # the lowest benign accuracy of the paper's base models on the test views (its Table 1)
 # The paper's model whose Table 3 values stand beside ours on the page, whatever our architecture.
-PAPER_ARCH, PAPER_ARCH_NAME = "resnet18", "ResNet-18"
+PAPER_ARCH = "resnet18"
 
 
 def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
@@ -308,7 +308,7 @@ def write_page(
             "attack: 5 uniform perturbations within +-r (PREDICT with "
             f"n = {jobs[0].attack.cfg.task.n} at each). Every column covers "
             f"{_share(int(jobs[0].attack.cfg.task.skip))}, the same images in each. The paper's values are in "
-            f"parentheses (MetaRoom, {PAPER_ARCH_NAME}, 500 training poses per class, 120 test images).",
+            f"parentheses (MetaRoom, {ARCH_NAMES[PAPER_ARCH]}, 500 training poses per class, 120 test images).",
             "",
         ]
     filled = any(c.filled for j in jobs for c in (j.certify, j.smooth, j.attack))
