@@ -45,7 +45,7 @@ results: $(STAMP) ## the evidence page docs/results.md: the quick model, six axe
 	$(MRCERT) -m experiment=results task=train
 	$(MRCERT) -m experiment=results task=certify,smooth,attack
 	$(MRCERT) -m experiment=results task=certify task.sequential=true
-	$(MRCERT) -m experiment=learning_curve task=train
+	$(MAKE) learning-curve
 	$(MAKE) side-by-side
 	$(MRCERT) -m task=tables task.experiment=results task.page=docs/results.md
 
@@ -53,8 +53,9 @@ side-by-side: $(STAMP) ## pixel-wise smoothing beside camera motion smoothing (d
 	$(MRCERT) -m experiment=side_by_side task=train
 	$(MRCERT) -m experiment=side_by_side task=certify
 
-learning-curve: $(STAMP) ## the learning curve: a small CNN's test accuracy by training poses, separation rule, seed
+learning-curve: $(STAMP) ## the learning curve: test accuracy by training poses, separation rule, seed (small CNN, ResNet-18)
 	$(MRCERT) -m experiment=learning_curve task=train
+	$(MRCERT) -m experiment=learning_curve_resnet18 task=train
 
 test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)
 	OMP_NUM_THREADS=$(THREADS) NUMBA_NUM_THREADS=$(THREADS) $(PY) -m pytest -q

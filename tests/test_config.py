@@ -105,6 +105,25 @@ def test_the_learning_curve_reaches_the_training_poses_of_the_page_s_models():
     )
 
 
+def test_the_learning_curve_s_architectures_differ_in_the_model_alone():
+    """Every experiment the page's learning curve reads trains a vanilla model on the same data,
+    protocol and recipe as the small CNN's curve, on training poses that curve also has, so that
+    its rows compare architectures and nothing else."""
+    from mrcert.reporting.learning_curve import EXPERIMENTS
+
+    base = compose_cfg([f"experiment={EXPERIMENTS[0]}"])
+    poses = set(str(base.hydra.sweeper.params["data.protocol.train.per_class"]).split(","))
+    archs = set()
+    for experiment in EXPERIMENTS:
+        cfg = compose_cfg([f"experiment={experiment}"])
+        params = cfg.hydra.sweeper.params
+        assert set(str(params["data.protocol.train.per_class"]).split(",")) <= poses, experiment
+        assert str(params["data.protocol.separation_rule"]) in ("every", "every,any"), experiment
+        assert cfg.data == base.data and cfg.train == base.train and cfg.model.variant == "vanilla", experiment
+        archs.add(cfg.model.arch)
+    assert archs == {"small_cnn", "resnet18"}
+
+
 @pytest.mark.parametrize(
     "axis,sigma", [("tz", 0.1), ("tx", 0.05), ("ty", 0.05), ("rz", 0.122173), ("rx", 0.0436332), ("ry", 0.0436332)]
 )
@@ -166,6 +185,7 @@ EXPERIMENT_TASKS = {
     "sweep": ("certify",),
     "results": ("train", "certify", "smooth", "attack"),
     "learning_curve": ("train",),
+    "learning_curve_resnet18": ("train",),
     "side_by_side": ("train", "certify"),
 }
 

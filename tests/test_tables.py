@@ -318,26 +318,37 @@ def test_findings_count_what_the_logs_hold():
 
 
 def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
-    """Two jobs of the learning-curve sweep, run for real on tiny data: one row each, with the
-    selected model's accuracies as the runs logged them and each epoch's history."""
+    """Three jobs of the learning-curve sweeps, run for real on tiny data -- the small CNN under
+    both separation rules and the paper's ResNet-18 from its own experiment: one row each, with
+    the selected model's accuracies as the runs logged them and each epoch's history, and a
+    per-epoch panel for each architecture."""
     from mrcert.reporting import learning_curve
 
-    tiny = [o for o in SETTINGS if not o.startswith("data.protocol.train.per_class")]
+    tiny = [o for o in SETTINGS if not o.startswith(("data.protocol.train.per_class", "model"))]
+    jobs = {
+        ("small_cnn", "every"): "learning_curve",
+        ("small_cnn", "any"): "learning_curve",
+        ("resnet18", "every"): "learning_curve_resnet18",
+    }
     results = {}
-    for rule in ("every", "any"):
-        job = ["experiment=learning_curve", "task=train", f"data.protocol.separation_rule={rule}", *tiny]
-        results[rule] = run(tmp_path, [*job, "data.protocol.train.per_class=40", "seed=0"], f"lc-{rule}")
+    for (arch, rule), experiment in jobs.items():
+        job = [f"experiment={experiment}", "task=train", f"data.protocol.separation_rule={rule}", *tiny]
+        results[arch, rule] = run(tmp_path, [*job, "data.protocol.train.per_class=40", "seed=0"], f"lc-{arch}-{rule}")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     src = Source(RunIndex.gather("mrcert"), "quick", overrides=tuple(tiny))
-    df = learning_curve.runs(src).set_index("separation rule")
-    assert sorted(df.index) == ["any", "every"] and (df["training poses per class"] == 40).all()
-    for rule, result in results.items():
-        assert df.loc[rule, "test accuracy"] == result["test_acc"]
-        assert df.loc[rule, "validation accuracy"] == result["best_val_acc"]
-        hist = learning_curve.histories(df.loc[[rule]])[df.loc[rule, "run_id"]]
+    df = learning_curve.runs(src).set_index(["model", "separation rule"])
+    assert sorted(df.index) == sorted(jobs) and (df["training poses per class"] == 40).all()
+    for key, result in results.items():
+        assert df.loc[key, "test accuracy"] == result["test_acc"]
+        assert df.loc[key, "validation accuracy"] == result["best_val_acc"]
+        hist = learning_curve.histories(df.loc[[key]])[df.loc[key, "run_id"]]
         assert len(hist["epoch_test_acc"]) == len(hist["val_acc"]) == 2  # SETTINGS: two epochs
+    table = learning_curve.table(df.reset_index())
+    assert table["model"].tolist() == ["small_cnn", "resnet18", "small_cnn"]  # every first; the page's model first
     fig = learning_curve.figure(df.reset_index(), learning_curve.histories(df))
-    assert len(fig.axes[0].lines) >= 2 and len(fig.axes[1].lines) == 2  # every: test and validation per epoch
+    titles = [ax.get_title() for ax in fig.axes]
+    assert titles[1:] == ["SmallCNN, separation `every`", "ResNet-18, separation `every`"]
+    assert len(fig.axes[0].lines) >= 3 and len(fig.axes[1].lines) == len(fig.axes[2].lines) == 2
 
 
 def test_the_learning_curve_table_and_the_why_sentence_follow_the_numbers():
@@ -364,6 +375,22 @@ def test_the_learning_curve_table_and_the_why_sentence_follow_the_numbers():
     assert "0.97 to 1.00 on the validation poses and 0.82 to 0.87 on the test images" in text
     assert "0.25 with 40 training poses per class and 0.85 with 500 (under `any`: 0.95 with 500)" in text
     assert "more training poses help, but with 500 per class the base classifier is still far" in text
+    resnet = pd.DataFrame(
+        {
+            "separation rule": ["every"] * 2,
+            "training poses per class": [40, 500],
+            "seed": [0, 0],
+            "model": ["resnet18"] * 2,
+            "validation accuracy": [0.1, 0.5],
+            "test accuracy": [0.05, 0.4],
+        }
+    )
+    both = why(models, pd.concat([curve, resnet], ignore_index=True))  # each architecture's own medians
+    assert "0.25 with 40 training poses per class and 0.85 with 500 (under `any`: 0.95 with 500)" in both
+    assert (
+        "Under `every` the median test accuracy of ResNet-18 is 0.05 with 40 training poses per class and 0.40 "
+        "with 500: more training poses help, but with 500 per class the base classifier is still far" in both
+    )
     curve.loc[(curve["training poses per class"] == 500) & (curve["separation rule"] == "every"), "test accuracy"] = 0.9
     assert "with 500 per class the base classifier performs normally on the test views" in why(models, curve)
     curve.loc[curve["training poses per class"] == 500, "test accuracy"] = 0.3

@@ -1,10 +1,12 @@
 """The learning curve: what it takes for a base classifier to generalise from the training
-poses to the test views (``experiment=learning_curve``, train runs only).
+poses to the test views (``experiment=learning_curve`` for the small CNN and
+``experiment=learning_curve_resnet18`` for the paper's ResNet-18, train runs only).
 
-One row per finished train run of the experiment's sweep (separation rule, training poses per
-class, seed); the table gives the median over seeds of the selected model's validation and test
-accuracy, the figure the test accuracy against training poses per class and, per epoch, the
-validation and test accuracy each run recorded (``val_acc``, ``epoch_test_acc``).
+One row per finished train run of the experiments' sweeps (architecture, separation rule,
+training poses per class, seed); the table gives the median over seeds of the selected model's
+validation and test accuracy per architecture, the figure the test accuracy against training
+poses per class and, per epoch and architecture, the validation and test accuracy each run
+recorded (``val_acc``, ``epoch_test_acc``).
 """
 
 from __future__ import annotations
@@ -13,15 +15,17 @@ import numpy as np
 import pandas as pd
 
 from mrcert.reporting.source import Source, sweep_combos
+from mrcert.reporting.tables import ARCH_NAMES
 
-EXPERIMENT = "learning_curve"
+EXPERIMENTS = ("learning_curve", "learning_curve_resnet18")
+"""The experiments whose train runs make the curve, the page's architecture (the small CNN) first."""
 
 
-def runs(src: Source, experiment: str = EXPERIMENT) -> pd.DataFrame:
-    """The experiment's finished train runs, one row each (empty when none has run); the source's
-    overrides apply to every job except the keys the sweep sets."""
+def runs(src: Source, experiments: tuple[str, ...] = EXPERIMENTS) -> pd.DataFrame:
+    """The experiments' finished train runs, one row each (empty when none has run), in the
+    experiments' order; the source's overrides apply to every job except the keys the sweep sets."""
     rows = []
-    for combo in sweep_combos(experiment):
+    for experiment, combo in ((e, c) for e in experiments for c in sweep_combos(e)):
         swept = {c.split("=", 1)[0] for c in combo}
         extra = tuple(o for o in src.overrides if o.split("=", 1)[0] not in swept)
         cell = src.index.cell((f"experiment={experiment}", f"profile={src.profile}", "task=train", *combo, *extra))
@@ -45,8 +49,10 @@ def runs(src: Source, experiment: str = EXPERIMENT) -> pd.DataFrame:
 
 
 def table(df: pd.DataFrame) -> pd.DataFrame:
-    """Median over seeds (and the range of the test accuracy) per rule, model and training poses."""
+    """Median over seeds (and the range of the test accuracy) per rule, model and training poses;
+    `every` first, the models in the order of the runs (the experiments' order)."""
     keys = ["separation rule", "model", "training poses per class"]
+    order = {"separation rule": {"every": 0, "any": 1}, "model": {m: k for k, m in enumerate(pd.unique(df["model"]))}}
     g = df.groupby(keys, sort=True)
     out = pd.DataFrame(
         {
@@ -56,7 +62,7 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
             "test accuracy (min-max)": g["test accuracy"].agg(lambda s: f"{s.min():.3f}-{s.max():.3f}"),
         }
     ).reset_index()
-    return out.sort_values(keys, key=lambda c: c.map({"every": 0, "any": 1}) if c.name == keys[0] else c)
+    return out.sort_values(keys, key=lambda c: c.map(order[c.name]) if c.name in order else c)
 
 
 def histories(df: pd.DataFrame, metrics=("val_acc", "epoch_test_acc")) -> dict[str, dict[str, np.ndarray]]:
@@ -75,40 +81,49 @@ def histories(df: pd.DataFrame, metrics=("val_acc", "epoch_test_acc")) -> dict[s
 
 def figure(df: pd.DataFrame, hist: dict[str, dict[str, np.ndarray]]):
     """Left: test accuracy against training poses per class (median over seeds, range as bars),
-    one line per rule. Right: validation and test accuracy after each epoch under `every`, one
-    pair of lines per number of training poses (median over seeds)."""
+    one line per architecture and rule. Then one panel per architecture: validation and test
+    accuracy after each epoch under `every`, one pair of lines per number of training poses
+    (median over seeds)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
-    for k, (rule, group) in enumerate(df.groupby("separation rule")):
+    models = list(pd.unique(df["model"]))
+    fig, axes = plt.subplots(1, 1 + len(models), figsize=(5 * (1 + len(models)), 5.2), squeeze=False)
+    left, per_epoch = axes[0][0], axes[0][1:]
+    for k, ((model, rule), group) in enumerate(df.groupby(["model", "separation rule"], sort=False)):
         g = group.groupby("training poses per class")["test accuracy"]
         x, med = np.array(list(g.groups)), g.median().to_numpy()
         err = np.vstack([med - g.min().to_numpy(), g.max().to_numpy() - med])
-        color = f"C{k}"
-        left.errorbar(x, med, yerr=err, marker="o", capsize=3, color=color, label=f"test, separation `{rule}`")
+        color, name = f"C{k}", f"{ARCH_NAMES.get(model, model)}, `{rule}`"
+        left.errorbar(x, med, yerr=err, marker="o", capsize=3, color=color, label=f"test, {name}")
         v = group.groupby("training poses per class")["validation accuracy"].median()
-        left.plot(v.index, v.to_numpy(), ls=":", marker=".", color=color, label=f"validation, `{rule}`")
+        left.plot(v.index, v.to_numpy(), ls=":", marker=".", color=color, label=f"validation, {name}")
     left.set(xlabel="training poses per class", ylabel="accuracy of best.pt", ylim=(0, 1.02), xscale="log")
     left.minorticks_off()
     left.set_xticks(sorted(df["training poses per class"].unique()))
     left.set_xticklabels([str(v) for v in sorted(df["training poses per class"].unique())])
-    every = df[df["separation rule"] == "every"]
-    for i, (n, group) in enumerate(every.groupby("training poses per class")):
-        color = f"C{i}"
-        for metric, style, name in (("epoch_test_acc", "-", "test"), ("val_acc", ":", "validation")):
-            curves = [hist[r][metric] for r in group["run_id"] if len(hist.get(r, {}).get(metric, []))]
-            if not curves:
-                continue
-            length = min(len(c) for c in curves)
-            med = np.median(np.stack([c[:length] for c in curves]), axis=0)
-            right.plot(np.arange(1, length + 1), med, style, color=color, label=f"{n} poses, {name}")
-    right.set(xlabel="epoch", ylabel="accuracy (median over seeds)", ylim=(0, 1.02), title="separation `every`")
-    for ax in (left, right):
+    for ax, model in zip(per_epoch, models, strict=True):
+        every = df[(df["separation rule"] == "every") & (df["model"] == model)]
+        for i, (n, group) in enumerate(every.groupby("training poses per class")):
+            color = f"C{i}"
+            for metric, style, name in (("epoch_test_acc", "-", "test"), ("val_acc", ":", "validation")):
+                curves = [hist[r][metric] for r in group["run_id"] if len(hist.get(r, {}).get(metric, []))]
+                if not curves:
+                    continue
+                length = min(len(c) for c in curves)
+                med = np.median(np.stack([c[:length] for c in curves]), axis=0)
+                ax.plot(np.arange(1, length + 1), med, style, color=color, label=f"{n} poses, {name}")
+        ax.set(
+            xlabel="epoch",
+            ylabel="accuracy (median over seeds)",
+            ylim=(0, 1.02),
+            title=f"{ARCH_NAMES.get(model, model)}, separation `every`",
+        )
+    for ax in axes[0]:
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.suptitle("Learning curve of the small CNN (vanilla) on the synthetic MetaRoom")
+        ax.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.2))  # below: no line hidden
+    fig.suptitle("Learning curves of the vanilla base classifiers on the synthetic MetaRoom")
     fig.tight_layout()
     return fig

@@ -142,7 +142,8 @@ PAPER_ARCH = "resnet18"
 
 def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
     """Sentences from the numbers: how well the evaluated base models generalise, and what the
-    learning curve says about the number of training poses under each separation rule."""
+    learning curve says about the number of training poses under each separation rule, per
+    architecture."""
     text = []
     if len(models):
         val, test = models["validation accuracy"].astype(float), models["test accuracy"].astype(float)
@@ -150,14 +151,16 @@ def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
             f"The evaluated base models reach {val.min():.2f} to {val.max():.2f} on the validation poses and "
             f"{test.min():.2f} to {test.max():.2f} on the test images."
         )
-    med = curve.groupby(["separation rule", "training poses per class"])["test accuracy"].median()
-    rules = set(med.index.get_level_values(0))
-    if "every" in rules and len(med["every"]) >= 2:
+    for model, runs in curve.groupby("model", sort=False):
+        med = runs.groupby(["separation rule", "training poses per class"])["test accuracy"].median()
+        rules = set(med.index.get_level_values(0))
+        if "every" not in rules or len(med["every"]) < 2:
+            continue
         every = med["every"]
         fewest, most = every.index.min(), every.index.max()
         sentence = (
-            f"Under `every` the small CNN's median test accuracy is {every[fewest]:.2f} with {fewest} training poses "
-            f"per class and {every[most]:.2f} with {most}"
+            f"Under `every` the median test accuracy of {ARCH_NAMES.get(model, model)} is {every[fewest]:.2f} with "
+            f"{fewest} training poses per class and {every[most]:.2f} with {most}"
         )
         if "any" in rules:
             top = med["any"].index.max()
@@ -360,8 +363,10 @@ def write_page(
         lines += [
             "## Learning curve: what it takes to generalise to the test views",
             "",
-            f"`make learning-curve` (`mrcert -m experiment={learning_curve.EXPERIMENT} task=train`): a small vanilla "
-            "CNN trained with each number of training poses per class and each pose-separation rule, over seeds, "
+            "`make learning-curve` ("
+            + ", then ".join(f"`mrcert -m experiment={e} task=train`" for e in learning_curve.EXPERIMENTS)
+            + "): vanilla base classifiers of each architecture trained with each number of training poses per "
+            "class, pose-separation rule and seed of the experiments' sweeps (the table counts the seeds), "
             "everything else as above. `every` keeps each angle of a training pose at least 15 degrees from that "
             "angle of every test pose (the paper's rule: no training pose has a roll within 15 degrees of the test "
             "poses' 0, a pitch within 15 of their 10, or a yaw within 15 of theirs); `any` only keeps training poses "
