@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from mrcert.reporting.source import Source, sweep_combos
-from mrcert.reporting.tables import ARCH_NAMES
+from mrcert.reporting.tables import arch_name
 
 EXPERIMENTS = ("learning_curve", "learning_curve_resnet18")
 """The experiments whose train runs make the curve, the page's architecture (the small CNN) first."""
@@ -96,7 +96,7 @@ def figure(df: pd.DataFrame, hist: dict[str, dict[str, np.ndarray]]):
         g = group.groupby("training poses per class")["test accuracy"]
         x, med = np.array(list(g.groups)), g.median().to_numpy()
         err = np.vstack([med - g.min().to_numpy(), g.max().to_numpy() - med])
-        color, name = f"C{k}", f"{ARCH_NAMES.get(model, model)}, `{rule}`"
+        color, name = f"C{k}", f"{arch_name(model)}, `{rule}`"
         left.errorbar(x, med, yerr=err, marker="o", capsize=3, color=color, label=f"test, {name}")
         v = group.groupby("training poses per class")["validation accuracy"].median()
         left.plot(v.index, v.to_numpy(), ls=":", marker=".", color=color, label=f"validation, {name}")
@@ -119,7 +119,7 @@ def figure(df: pd.DataFrame, hist: dict[str, dict[str, np.ndarray]]):
             xlabel="epoch",
             ylabel="accuracy (median over seeds)",
             ylim=(0, 1.02),
-            title=f"{ARCH_NAMES.get(model, model)}, separation `every`",
+            title=f"{arch_name(model)}, separation `every`",
         )
     for ax in axes[0]:
         ax.grid(alpha=0.3)

@@ -19,7 +19,7 @@ from mrcert.reporting.cells import Cell
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
 from mrcert.reporting.source import Source
-from mrcert.reporting.tables import ARCH_NAMES, AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, robust
+from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, arch_name, robust
 from mrcert.reporting.writers import as_text, markdown
 
 
@@ -159,7 +159,7 @@ def why(models: pd.DataFrame, curve: pd.DataFrame) -> str:
         every = med["every"]
         fewest, most = every.index.min(), every.index.max()
         sentence = (
-            f"Under `every` the median test accuracy of {ARCH_NAMES.get(model, model)} is {every[fewest]:.2f} with "
+            f"Under `every` the median test accuracy of {arch_name(model)} is {every[fewest]:.2f} with "
             f"{fewest} training poses per class and {every[most]:.2f} with {most}"
         )
         if "any" in rules:
@@ -311,7 +311,7 @@ def write_page(
             "attack: 5 uniform perturbations within +-r (PREDICT with "
             f"n = {jobs[0].attack.cfg.task.n} at each). Every column covers "
             f"{_share(int(jobs[0].attack.cfg.task.skip))}, the same images in each. The paper's values are in "
-            f"parentheses (MetaRoom, {ARCH_NAMES[PAPER_ARCH]}, 500 training poses per class, 120 test images).",
+            f"parentheses (MetaRoom, {arch_name(PAPER_ARCH)}, 500 training poses per class, 120 test images).",
             "",
         ]
     filled = any(c.filled for j in jobs for c in (j.certify, j.smooth, j.attack))

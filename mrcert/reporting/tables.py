@@ -43,8 +43,13 @@ def robust(who: str, k: int) -> Measure:
     return Measure("attack", f"{who}_robust_accuracy", (f"attack.k={k}",))
 
 
+def arch_name(arch: str) -> str:
+    """The paper's name of an architecture (``ARCH_NAMES``), or its config name for any other."""
+    return ARCH_NAMES.get(arch, arch)
+
+
 def model_label(arch: str, variant: str, smoothed: bool = True) -> str:
-    return f"{'Smoothed ' if smoothed else ''}{variant.capitalize()} {ARCH_NAMES.get(arch, arch)}"
+    return f"{'Smoothed ' if smoothed else ''}{variant.capitalize()} {arch_name(arch)}"
 
 
 # The paper's values of each measure (who, quantity, K); benign accuracy has no K.
@@ -134,7 +139,7 @@ def base_vs_smoothed_table(
         for quantity in ("benign", "perturbed"):
             key = (AXIS_NAMES.get(ax, ax), labels[quantity])
             for who in ("base", "smoothed"):
-                column = f"{ARCH_NAMES.get(a, a)} {who.capitalize()}"
+                column = f"{arch_name(a)} {who.capitalize()}"
                 measure = measures[(quantity, who)]
                 value = src.value(name, key, column, [src.cell(exp, combo, measure)], measure.metric)
                 reported = paper_value(who, quantity, None if quantity == "benign" else k, ax, a, variant)
@@ -152,7 +157,7 @@ def perturbed_5_vs_100_table(src: Source, show_paper: bool = False, name: str = 
         for combo, first in src.rows(exp, SMOOTHED_BENIGN):
             ax, a, v = _axis(first), first.cfg.model.arch, first.cfg.model.variant
             key = (AXIS_NAMES.get(ax, ax), f"{k}-perturbed")
-            column = f"{ARCH_NAMES.get(a, a)} {v.capitalize()}"
+            column = f"{arch_name(a)} {v.capitalize()}"
             value = src.value(name, key, column, [src.cell(exp, combo, measure)], measure.metric)
             rows.setdefault(key, {})[column] = _cell(
                 value, paper_value("smoothed", "perturbed", k, ax, a, v), show_paper
