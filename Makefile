@@ -55,6 +55,7 @@ side-by-side: $(STAMP) ## pixel-wise smoothing beside camera motion smoothing (d
 
 learning-curve: $(STAMP) ## the learning curve: test accuracy by training poses, separation rule, seed (small CNN, ResNet-18)
 	$(MRCERT) -m experiment=learning_curve task=train
+	$(MRCERT) -m experiment=learning_curve_any task=train
 	$(MRCERT) -m experiment=learning_curve_resnet18 task=train
 
 test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)

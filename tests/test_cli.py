@@ -82,6 +82,14 @@ def make_recipe(target: str) -> list[list[str]]:
     return [shlex.split(line)[1:] for line in out.splitlines() if line.startswith(":mrcert: ")]
 
 
+def test_make_learning_curve_trains_exactly_the_experiments_the_page_s_curve_reads():
+    """The evidence page's curve reads learning_curve.EXPERIMENTS; `make learning-curve` (and so
+    `make results`) must train each of them, in that order, and nothing else."""
+    from mrcert.reporting.learning_curve import EXPERIMENTS
+
+    assert make_recipe("learning-curve") == [["-m", f"experiment={e}", "task=train"] for e in EXPERIMENTS]
+
+
 @pytest.mark.slow
 def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs(tmp_path):
     """Issue 22: make demo's last step (task=tables) was a top-level run outside any sweep. The

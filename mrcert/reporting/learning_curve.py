@@ -1,6 +1,7 @@
 """The learning curve: what it takes for a base classifier to generalise from the training
-poses to the test views (``experiment=learning_curve`` for the small CNN and
-``experiment=learning_curve_resnet18`` for the paper's ResNet-18, train runs only).
+poses to the test views (``experiment=learning_curve`` for the small CNN under the paper's
+separation rule, ``experiment=learning_curve_any`` for it under ``any``, for reference, and
+``experiment=learning_curve_resnet18`` for the paper's ResNet-18; train runs only).
 
 One row per finished train run of the experiments' sweeps (architecture, separation rule,
 training poses per class, seed); the table gives the median over seeds of the selected model's
@@ -17,7 +18,7 @@ import pandas as pd
 from mrcert.reporting.source import Source, sweep_combos
 from mrcert.reporting.tables import arch_name
 
-EXPERIMENTS = ("learning_curve", "learning_curve_resnet18")
+EXPERIMENTS = ("learning_curve", "learning_curve_any", "learning_curve_resnet18")
 """The experiments whose train runs make the curve, the page's architecture (the small CNN) first."""
 
 
