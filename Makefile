@@ -58,8 +58,8 @@ learning-curve: $(STAMP) ## the learning curve: test accuracy by training poses,
 	$(MRCERT) -m experiment=learning_curve_any task=train
 	$(MRCERT) -m experiment=learning_curve_resnet18 task=train
 
-test: $(STAMP) ## the fast test suite (< 10 min on 2 cores)
-	OMP_NUM_THREADS=$(THREADS) NUMBA_NUM_THREADS=$(THREADS) $(PY) -m pytest -q
+test: $(STAMP) ## the fast test suite (< 10 min on 2 cores): one pytest worker per thread, test files shared out
+	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n $(THREADS) --dist loadfile
 
 test-full: $(STAMP) ## every test, the slow ones too
 	OMP_NUM_THREADS=$(THREADS) NUMBA_NUM_THREADS=$(THREADS) $(PY) -m pytest -q -m ''
