@@ -107,8 +107,9 @@ def test_the_learning_curve_reaches_the_training_poses_of_the_page_s_models():
 
 def test_the_learning_curve_s_architectures_differ_in_the_model_alone():
     """Every experiment the page's learning curve reads trains a vanilla model on the same data,
-    protocol and recipe as the small CNN's curve, on training poses that curve also has, so that
-    its rows compare architectures and nothing else."""
+    protocol and recipe as the small CNN's curve, on training poses that curve also has, under
+    one of the two separation rules, so that its rows differ from that curve's in the
+    architecture or the rule and nothing else."""
     from mrcert.reporting.learning_curve import EXPERIMENTS
 
     base = compose_cfg([f"experiment={EXPERIMENTS[0]}"])
