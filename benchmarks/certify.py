@@ -9,7 +9,7 @@ MetaRoom (cropped for the axis's smoothing, exact), on the given threads or GPU;
 is the same 1100 forward passes on the sample's own renders, measured in the same run, and
 every variant of the forward passes must predict the same classes on them. On CUDA the
 rendering of the next batch overlaps the model (as in the tasks) and the peak GPU memory is
-printed. Medians over repeats.
+printed. Medians over repeats, the reference and certify interleaved.
 Usage: python benchmarks/certify.py [--axis tz] [--threads 2] [--device cpu|cuda] [--compile] [override ...]
 """
 
@@ -109,7 +109,6 @@ def run(args, arch: str) -> None:
     certify()  # warm-up: numba compilation, allocator, cuDNN
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    ref = statistics.median(_timed(model_alone) for _ in range(args.repeats))
     if args.cprofile:
         import cProfile
         import pstats
@@ -117,7 +116,11 @@ def run(args, arch: str) -> None:
         profiler = cProfile.Profile()
         profiler.runcall(certify)
         pstats.Stats(profiler).sort_stats("cumulative").print_stats(14)
-    runs = [certify() for _ in range(args.repeats)]
+    refs, runs = [], []
+    for _ in range(args.repeats):  # interleaved, so that a drift in the machine's speed hits both alike
+        refs.append(_timed(model_alone))
+        runs.append(certify())
+    ref = statistics.median(refs)
     total, built, render, model_t = (statistics.median(r[i] for r in runs) for i in range(4))
     overhead = total - built - render - model_t
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{args.threads} CPU threads"

@@ -244,6 +244,8 @@ def test_bad_shapes_are_reported():
         project(pts, torch.zeros(4, 3), PAPER_K, torch.zeros(1, 3), H, W)
     with pytest.raises(ValueError, match="height must be a positive integer, got 0"):
         project(pts, torch.zeros(4, 3), PAPER_K, torch.zeros(1, 6), 0, W)
+    with pytest.raises(ValueError, match="height x width must be under 2\\*\\*31 pixels, got 65536 x 32768"):
+        project(pts, torch.zeros(4, 3), PAPER_K, torch.zeros(1, 6), 65536, 32768)
     with pytest.raises(ValueError, match="unknown projection backend 'cuda'"):
         project(pts, torch.zeros(4, 3), PAPER_K, torch.zeros(1, 6), H, W, backend="cuda")
 

@@ -296,6 +296,8 @@ def _check_inputs(points, colors, K, motions, height, width) -> None:
     for name, value in (("height", height), ("width", width)):
         if int(value) != value or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if height * width >= 2**31:
+        raise ValueError(f"height x width must be under 2**31 pixels, got {height} x {width}")
 
 
 def _gather_colors(colors, winner, background, height, width) -> torch.Tensor:
@@ -447,7 +449,9 @@ def _zbuffer_kernel(
     Each block is two passes: every point's depth and pixel (-1 when it does not land), with
     no branch, so that the compiler computes several points per vector instruction (1.7-1.8x
     the one-pass loop, the same float64 operations and so the same bits); then the z-test
-    of the points that land, in storage order."""
+    of the points that land, in storage order. The pixel index is an int32 made by truncation,
+    which is the floor on the image (``0 <= u < width``) and which AVX2 converts four at a time,
+    where a float64 -> int64 conversion has no vector instruction there (1.3x the whole kernel)."""
     n = P.shape[1]
     X, Y, Z = P[0], P[1], P[2]
     for b in numba.prange(R.shape[0]):
@@ -457,7 +461,7 @@ def _zbuffer_kernel(
         tx, ty, tz = t[b, 0], t[b, 1], t[b, 2]
         zbuf = depth[b]
         wbuf = np.full(height * width, -1, np.int64)
-        pixel = np.empty(block, np.int64)
+        pixel = np.empty(block, np.int32)
         zs = np.empty(block, np.float64)
         for k in range(center.shape[0]):
             if _outside(center[k], half[k], R[b], t[b], fx, fy, cx, cy, height, width):
@@ -472,9 +476,7 @@ def _zbuffer_kernel(
                 uf = fx * ((r00 * dx + r10 * dy + r20 * dz) / zc) + cx
                 vf = fy * ((r01 * dx + r11 * dy + r21 * dz) / zc) + cy
                 lands = (zc > 0.0) & (uf >= 0.0) & (uf < width) & (vf >= 0.0) & (vf < height)
-                u = np.floor(uf) if lands else 0.0
-                v = np.floor(vf) if lands else 0.0
-                pixel[j] = int(v) * width + int(u) if lands else -1
+                pixel[j] = np.int32(vf) * np.int32(width) + np.int32(uf) if lands else np.int32(-1)
                 zs[j] = zc
             for j in range(m):
                 p = pixel[j]
