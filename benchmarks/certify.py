@@ -9,7 +9,8 @@ MetaRoom (cropped for the axis's smoothing, exact), on the given threads or GPU;
 is the same 1100 forward passes on the sample's own renders, measured in the same run, and
 every variant of the forward passes must predict the same classes on them. On CUDA the
 rendering of the next batch overlaps the model (as in the tasks) and the peak GPU memory is
-printed. Medians over repeats, the reference and certify interleaved.
+printed. Medians over repeats, interleaved (the reference with certify, the forward-pass
+variants with one another).
 Usage: python benchmarks/certify.py [--axis tz] [--threads 2] [--device cpu|cuda] [--compile] [override ...]
 """
 
@@ -168,10 +169,13 @@ def forward_passes(args, classes, eager, model, batch: int) -> None:
     expected = classes(model, batch)
     print(f"\n1100 forward passes on the sample's renders, median of {args.repeats}{compiled}")
     print(f"{'':<42}{'seconds':>10}{'speed-up vs eager':>19}{'same classes':>14}")
-    before = None
-    for name, net, size in variants:
-        seconds = statistics.median(_timed(lambda n=net, b=size: classes(n, b)) for _ in range(args.repeats))
-        before = before or seconds
+    times = [[] for _ in variants]
+    for _ in range(args.repeats):  # interleaved, so that a drift in the machine's speed hits every variant alike
+        for spent, (_, net, size) in zip(times, variants, strict=True):
+            spent.append(_timed(lambda n=net, b=size: classes(n, b)))
+    before = statistics.median(times[0])
+    for spent, (name, net, size) in zip(times, variants, strict=True):
+        seconds = statistics.median(spent)
         same = bool(torch.equal(classes(net, size), expected))
         print(f"{name:<42}{seconds:>10.3f}{before / seconds:>18.2f}x{'yes' if same else 'NO':>14}")
 
