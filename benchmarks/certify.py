@@ -171,7 +171,7 @@ def forward_passes(args, classes, eager, model, batch: int) -> None:
     print(f"{'':<42}{'seconds':>10}{'speed-up vs eager':>19}{'same classes':>14}")
     times = [[] for _ in variants]
     for _ in range(args.repeats):  # interleaved, so that a drift in the machine's speed hits every variant alike
-        for spent, (_, net, size) in zip(times, variants, strict=True):
+        for spent, (_name, net, size) in zip(times, variants, strict=True):
             spent.append(_timed(lambda n=net, b=size: classes(n, b)))
     before = statistics.median(times[0])
     for spent, (name, net, size) in zip(times, variants, strict=True):
