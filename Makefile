@@ -8,7 +8,8 @@ STAMP := $(VENV)/.installed
 PORT ?= 5000
 # The MLflow UI's address: `make ui` serves there and the tables' links point there.
 export MRCERT_UI_URL := http://127.0.0.1:$(PORT)
-OUTPUTS ?= outputs
+# The store: MRCERT_OUTPUTS when set (as mrcert reads it), else outputs/.
+OUTPUTS ?= $(or $(MRCERT_OUTPUTS),outputs)
 # Threads for tests and benchmarks (the reference machine has 2 cores).
 THREADS ?= 2
 # Device for the benchmarks: cpu, or cuda on a machine with a GPU.

@@ -217,6 +217,31 @@ def test_ctrl_c_is_one_line_and_the_run_is_killed(checkpoints, tmp_path):
     assert run.info.status == "KILLED"
 
 
+def test_a_resumed_run_counts_its_working_time_not_the_time_it_was_down(checkpoints, tmp_path):
+    """The time table's run time is what the run's processes worked: a run interrupted by
+    Ctrl-C and resumed after a pause of ``down`` seconds reports at most its start-to-end
+    time less the pause; one of whose processes was killed outright (no time logged) falls
+    back to start-to-end."""
+    from mrcert.reporting.results_page import run_seconds
+
+    args, down = certify_args(checkpoints["a"], n=2000), 5.0
+    proc = start_cli(args, tmp_path, interruptible=True)
+    wait_until(proc, lambda: any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)))
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=120)
+    time.sleep(down)
+    done = run_cli(args, tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    (run,) = [r for _, r in mlflow.search_runs(search_all_experiments=True).iterrows()]
+    assert run["status"] == "FINISHED" and run["metrics.segments"] == run["metrics.timed_segments"] == 2
+    span = (run["end_time"] - run["start_time"]).total_seconds()
+    assert 0 < run_seconds(run) == run["metrics.active_seconds"] <= span - down
+    killed = run.copy()
+    killed["metrics.segments"] = 3  # a third process started and was killed before it could log
+    assert run_seconds(killed) == span
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

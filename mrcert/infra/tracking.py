@@ -384,6 +384,26 @@ def adopt(launch_dir: Path, run_dir: Path) -> None:
 
 
 @contextmanager
+def timed_segment(mlflow, before: dict[str, float]) -> Iterator[None]:
+    """Count the wall-clock this process works on the active run, apart from the time the run
+    was down between an interruption and its resumption: metrics ``segments`` (processes that
+    worked on the run, logged on entry), ``timed_segments`` (those that logged their time on
+    exit, whatever the exit) and ``active_seconds`` (their time, summed). A process killed
+    outright logs no time, so ``timed_segments < segments`` says the sum is short."""
+    t0 = time.monotonic()
+    mlflow.log_metric("segments", before.get("segments", 0) + 1)
+    try:
+        yield
+    finally:
+        mlflow.log_metrics(
+            {
+                "active_seconds": before.get("active_seconds", 0.0) + time.monotonic() - t0,
+                "timed_segments": before.get("timed_segments", 0) + 1,
+            }
+        )
+
+
+@contextmanager
 def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[Tracker]:
     """An MLflow run around one task: params, tags (the run and cell keys, the model used) and
     the resolved config on entry, status FINISHED, FAILED (an error) or KILLED (interrupted)
@@ -440,7 +460,8 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
                 mlflow.log_artifact(str(resolved))
             log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
             try:
-                yield Tracker(output_dir, run.info.run_id, resumed=previous is not None, key=ident.key)
+                with timed_segment(mlflow, previous.data.metrics if previous is not None else {}):
+                    yield Tracker(output_dir, run.info.run_id, resumed=previous is not None, key=ident.key)
             except KeyboardInterrupt:
                 mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
                 raise

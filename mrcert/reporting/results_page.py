@@ -198,10 +198,20 @@ def _verdict(holds: int, total: int) -> str:
     return f"holds in {holds} of {total}" if holds < total else f"holds in all {total}"
 
 
+def run_seconds(run: pd.Series) -> float:
+    """A run's working wall-clock: the time its processes worked on it (``active_seconds``),
+    leaving out the time it was down between an interruption and its resumption; from its
+    start to its end when a process of it was killed outright and logged no time."""
+    timed, segments = run.get("metrics.timed_segments"), run.get("metrics.segments")
+    if pd.notna(timed) and timed == segments:
+        return float(run["metrics.active_seconds"])
+    return (run["end_time"] - run["start_time"]).total_seconds()
+
+
 def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
-    """Time per stage: the runs' wall-clock (start to end, so a run that was interrupted and
-    resumed counts the time it was down) summed over the stage's runs, the machines they ran
-    on, and the seconds per test image measured in the per-image logs (work only)."""
+    """Time per stage: the runs' working wall-clock (``run_seconds``) summed over the stage's
+    runs, the machines they ran on, and the seconds per test image measured in the per-image
+    logs (work only)."""
     runs = {"train": set(), "certify": set(), "smooth": set(), "attack": set()}
     images = {"certify": 0, "smooth": 0, "attack": 0}
     work = {"certify": 0.0, "smooth": 0.0, "attack": 0.0}
@@ -219,7 +229,7 @@ def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
     rows = []
     for stage, ids in runs.items():
         ids = [i for i in ids if i in df.index]
-        seconds = float(sum((df.loc[i, "end_time"] - df.loc[i, "start_time"]).total_seconds() for i in ids))
+        seconds = float(sum(run_seconds(df.loc[i]) for i in ids))
         machines = df.loc[ids, "tags.mrcert.machine"].dropna() if "tags.mrcert.machine" in df else pd.Series()
         rows.append(
             {
@@ -385,8 +395,10 @@ def write_page(
         lines += [
             "## Time per stage",
             "",
-            "Each run's wall-clock from its start to its end (a run that was interrupted and resumed also counts "
-            "the time it was down), summed over the stage's runs: runs that ran side by side on one machine each "
+            "Each run's wall-clock while a process worked on it (a run that was interrupted and resumed does not "
+            "count the time it was down, unless a process of it was killed outright and could not log its time: "
+            "then it counts from its start to its end), summed over the stage's runs: runs that ran side by side "
+            "on one machine each "
             "count in full, so the sum is not the stage's elapsed time. Seconds per image from the per-image logs, "
             "each run's own pace (slower when runs shared a machine); the machines are the ones each run started on.",
             "",
