@@ -5,8 +5,6 @@
 from __future__ import annotations
 
 AXES_ORDER = ("tz", "tx", "ty", "rz", "rx", "ry")
-ARCHS = ("resnet18", "resnet50")
-VARIANTS = ("vanilla", "augmented")
 
 # Table 3: smoothed models' benign accuracy, 5-perturbed empirical robust accuracy, certified accuracy.
 _T3 = {  # axis: [(benign, 5-pert, certified) for V-R18, A-R18, V-R50, A-R50]

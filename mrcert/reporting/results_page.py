@@ -52,10 +52,6 @@ def jobs_of(src: Source, experiment: str, k: int) -> list[Job]:
     return jobs
 
 
-def _pct(x: float) -> str:
-    return "n/a" if x is None or np.isnan(x) else f"{x:.3f}"
-
-
 def findings(src: Source, jobs: list[Job]) -> list[str]:
     """The paper's three qualitative findings, each checked in one sentence with our numbers."""
     by = {(j.axis, j.variant): j for j in jobs}
