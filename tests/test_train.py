@@ -71,7 +71,7 @@ def test_killed_run_resumes_to_the_same_weights_in_the_same_mlflow_run(tmp_path)
     interrupted_at = torch.load(ckpt, weights_only=True)["epoch"]
     assert interrupted_at < 5, "the run finished before it could be killed"
 
-    done = run_cli([*args, "task.resume=true"], outputs)
+    done = run_cli(args, outputs)  # the same command: resuming is the default
     assert done.returncode == 0, done.stderr[-2000:]
     client = store(outputs)
     (run,) = client.search_runs([client.get_experiment_by_name("mrcert").experiment_id])
