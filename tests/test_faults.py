@@ -242,6 +242,21 @@ def test_a_resumed_run_counts_its_working_time_not_the_time_it_was_down(checkpoi
     assert run_seconds(killed) == span
 
 
+def test_a_run_resumed_from_before_the_time_count_is_not_reported_as_fully_timed():
+    """A run whose earlier processes logged no time (begun by code without the count) is resumed:
+    its resuming process must not pass its own time off as the whole run's."""
+    from types import SimpleNamespace
+
+    from mrcert.infra.tracking import timed_segment
+
+    logged: dict[str, float] = {}
+    fake = SimpleNamespace(log_metric=lambda k, v: logged.update({k: v}), log_metrics=logged.update)
+    for previous, segments in [(None, 1), (SimpleNamespace(data=SimpleNamespace(metrics={"loss": 0.1})), 2)]:
+        with timed_segment(fake, previous):
+            pass
+        assert (logged["segments"], logged["timed_segments"]) == (segments, 1)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

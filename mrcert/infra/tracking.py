@@ -384,14 +384,17 @@ def adopt(launch_dir: Path, run_dir: Path) -> None:
 
 
 @contextmanager
-def timed_segment(mlflow, before: dict[str, float]) -> Iterator[None]:
-    """Count the wall-clock this process works on the active run, apart from the time the run
-    was down between an interruption and its resumption: metrics ``segments`` (processes that
-    worked on the run, logged on entry), ``timed_segments`` (those that logged their time on
-    exit, whatever the exit) and ``active_seconds`` (their time, summed). A process killed
-    outright logs no time, so ``timed_segments < segments`` says the sum is short."""
+def timed_segment(mlflow, previous) -> Iterator[None]:
+    """Count the wall-clock this process works on the active run (``previous``: the interrupted
+    run it resumes, or None), apart from the time the run was down between an interruption and
+    its resumption: metrics ``segments`` (processes that worked on the run, logged on entry),
+    ``timed_segments`` (those that logged their time on exit, whatever the exit) and
+    ``active_seconds`` (their time, summed). A process killed outright logs no time, and a run
+    begun before this count existed had at least one untimed process, so
+    ``timed_segments < segments`` says the sum is short."""
     t0 = time.monotonic()
-    mlflow.log_metric("segments", before.get("segments", 0) + 1)
+    before = previous.data.metrics if previous is not None else {}
+    mlflow.log_metric("segments", before.get("segments", 0 if previous is None else 1) + 1)
     try:
         yield
     finally:
@@ -460,7 +463,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
                 mlflow.log_artifact(str(resolved))
             log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
             try:
-                with timed_segment(mlflow, previous.data.metrics if previous is not None else {}):
+                with timed_segment(mlflow, previous):
                     yield Tracker(output_dir, run.info.run_id, resumed=previous is not None, key=ident.key)
             except KeyboardInterrupt:
                 mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
