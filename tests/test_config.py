@@ -35,6 +35,7 @@ REQUIRED = {
     ("data", "pointcloud"): ["data.path=scan.ply"],
     ("data", "custom"): ["data.path=scan.ply", "data.poses=poses.json"],
     ("task", "import"): ["task.path=certify.tsv"],
+    ("task", "gather"): ["task.source=other/outputs"],
 }
 
 

@@ -102,6 +102,12 @@ class Import:
     tags: dict[str, str] = field(default_factory=dict)
 
 
+@dataclass
+class Gather:
+    name: str = MISSING
+    source: str = MISSING
+
+
 # --- data --------------------------------------------------------------------------------
 @dataclass
 class Camera:
@@ -263,6 +269,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
         "render": Render,
         "tables": Tables,
         "import": Import,
+        "gather": Gather,
     },
     "data": {"scene": Scene, "synthetic": Synthetic, "released": Released, "custom": Custom, "camera": Camera},
     "motion": {"single": Motion, "multi": MultiAxisMotion},

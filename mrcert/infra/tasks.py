@@ -93,6 +93,9 @@ EVALUATION = Identity(
     needs_model=True,
 )
 
+HELPER_IGNORES = ("data", "model", "motion", "method", "seed", "profile", "train", "attack")
+"""What a helper task (import, gather) never depends on: the composed data, model and recipe."""
+
 TASKS: dict[str, Task] = {
     "render": Task(
         "mrcert.tasks.render:run",
@@ -182,7 +185,7 @@ TASKS: dict[str, Task] = {
         # The log's metadata (task.dataset, task.arch, ...) is all it is; one cell may hold one log.
         Identity(
             defines=("task",),
-            ignores=("data", "model", "motion", "method", "seed", "profile", "train", "attack"),
+            ignores=HELPER_IGNORES,
             files=("task.path",),
             partition=("task.path",),
         ),
@@ -191,5 +194,17 @@ TASKS: dict[str, Task] = {
         metrics="mrcert.reporting.metrics:imported",
         headline=("certified_accuracy", "clean_accuracy"),
         title=lambda cfg: f"import {cfg.task.axis} {cfg.task.arch} {cfg.task.variant}",
+    ),
+    "gather": Task(
+        "mrcert.tasks.gather:run",
+        "copy the finished runs of another store into this one",
+        # What it copies depends on the other store's runs, not only on its config.
+        Identity(
+            defines=("task",),
+            ignores=HELPER_IGNORES,
+            files=("task.source",),  # checked before any run starts (mrcert.tasks.inputs)
+        ),
+        reusable=False,
+        title=lambda cfg: f"gather {cfg.task.source}",
     ),
 }

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mrcert.reporting import certify_log, learning_curve, side_by_side
+from mrcert.reporting import certify_log, learning_curve, side_by_side, tables
 from mrcert.reporting.cells import Cell
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
 from mrcert.reporting.source import Source
-from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, arch_name, robust
+from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, arch_name, model_label, robust
 from mrcert.reporting.writers import as_text, markdown
 
 
@@ -184,6 +184,11 @@ def _validation(cfg) -> str:
     return f"{spec.per_class} validation poses per class (docs/method.md §3)"
 
 
+def _images(src: Source, cell: Cell) -> int | str:
+    log = src.index.log(cell)
+    return "its" if log is None else len(log)
+
+
 def _share(skip: int) -> str:
     return "every test image" if skip == 1 else f"one test image in {skip}"
 
@@ -273,6 +278,47 @@ def side_by_side_section(src: Source, page: Path) -> list[str]:
         "their models; not these test views):",
         "",
         markdown(as_text(reported)),
+        "",
+    ]
+
+
+PAPER_PROFILE = "paper"
+
+
+def paper_profile_section(src: Source) -> list[str]:
+    """The paper's own profile (``profile=paper``: the paper's data settings, ResNets and
+    100-epoch recipe, a GPU's work), when the store holds any of its Table 3 runs (e.g. gathered
+    from a GPU with ``task=gather``): the filled rows beside the paper, their base models, and the
+    time each stage took on which machine."""
+    paper = Source(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
+    filled = {
+        (AXIS_NAMES.get(j.axis, j.axis), model_label(j.arch, j.variant)): j
+        for j in jobs_of(paper, "table3", 5)
+        if any(c.filled for c in (j.certify, j.smooth, j.attack))
+    }  # one job per row (cell overrides can make two of the sweep's jobs one)
+    if not filled:
+        return []
+    jobs = list(filled.values())
+    table = tables.certified_table(paper, show_paper=True, name="paper_profile")
+    keep = list(filled)
+    times = stage_times(paper, jobs)
+    cfg = jobs[0].certify.cfg
+    return [
+        "## The paper's profile",
+        "",
+        f"`profile=paper` (`mrcert -m experiment=table3 profile=paper task=train,certify ...`, a GPU's work; "
+        "runs made on another machine join this store with `mrcert task=gather`): the paper's data "
+        f"settings ({cfg.data.protocol.train.per_class} training poses per class), its architectures and recipe "
+        f"({cfg.train.epochs} epochs at lr {cfg.train.lr}), fixed-n CERTIFY at r = sigma (n0 = {cfg.task.n0}, "
+        f"n = {cfg.task.n}, alpha = {cfg.task.alpha}) over {_images(paper, jobs[0].certify)} test images. Only "
+        "the cells this store holds "
+        "runs for; an empty cell was not run. The paper's values in parentheses.",
+        "",
+        markdown(as_text(table.loc[keep])),
+        "",
+        markdown(as_text(base_models(paper, jobs))),
+        "",
+        markdown(times[times["runs"] > 0].astype(str)),
         "",
     ]
 
@@ -387,6 +433,7 @@ def write_page(
             "",
         ]
     lines += side_by_side_section(src, page)
+    lines += paper_profile_section(src)
     if filled:
         lines += [
             "## Time per stage",

@@ -42,11 +42,18 @@ def _log(path: Path) -> None:
     read_log(path)
 
 
+def _store(path: Path) -> None:
+    from mrcert.tasks.gather import source_store
+
+    source_store(str(path))
+
+
 CHECKS: dict[str, Callable[[Path], None]] = {
     "model.checkpoint": _checkpoint,
     "data.path": _cloud,  # a cloud file; the released MetaRoom is a folder, checked when opened
     "data.poses": _poses,
     "task.path": _log,
+    "task.source": _store,  # task=gather's other store
 }
 
 

@@ -1,0 +1,112 @@
+"""``task=gather``: runs made in another store (a lent GPU's) join this one and fill the same
+table cells there as here, and the evidence page shows the paper profile's runs with the
+machine and time they took.
+
+The source store holds real tiny runs under ``profile=paper`` (the tiny data and a short
+recipe, as in tests/test_tables.py)."""
+
+import shutil
+from pathlib import Path
+
+import mlflow
+import pytest
+
+from mrcert.infra.checkpoints import local_checkpoint, read_checkpoint
+from mrcert.infra.runtime import machine
+from mrcert.reporting import results_page, tables
+from mrcert.reporting.cells import RunIndex
+from mrcert.reporting.certify_log import read_log
+from mrcert.reporting.source import Source
+from mrcert.tasks.gather import GATHERED
+from tests.conftest import run_cli
+from tests.test_tables import SETTINGS, run
+
+PAPER = ["experiment=table3", "profile=paper", *SETTINGS, "model.variant=vanilla", "motion=tz"]
+CHEAP = ("task.n=200", "task.skip=3")  # a short certification: every cell of the tables gets these too
+
+
+@pytest.fixture(scope="module")
+def gpu_store(tmp_path_factory):
+    """A store as a GPU session leaves it: a paper-profile train run and its certification."""
+    out = tmp_path_factory.mktemp("gpu")
+    run(out, [*PAPER, "task=train"], "train")
+    run(out, [*PAPER, "task=certify", "task.batch_size=64", *CHEAP], "certify")
+    return out
+
+
+def index(out: Path, profile: str = "quick") -> Source:
+    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
+    return Source(RunIndex.gather("mrcert"), profile, overrides=(*SETTINGS, *CHEAP))
+
+
+def gather(into: Path, source: Path) -> dict:
+    return run(into, ["task=gather", f"task.source={source}"], f"gather-{source.name}")
+
+
+def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_store):
+    text = " ".join(" ".join(results_page.paper_profile_section(index(gpu_store))).split())
+    clog = read_log(next((gpu_store / "runs" / "certify").glob("certify.tsv")), ["idx"])
+    certified = ((clog.correct == 1) & (clog.radius >= 0.1) & (clog.predict >= 0)).mean()
+    # One row per model (the paper has no small CNN, so no value of its own beside it).
+    assert text.count("| Tz | Smoothed Vanilla SmallCNN |") == 1
+    assert f"| Tz | Smoothed Vanilla SmallCNN | | | {certified:.3f} |" in text
+    assert f"n = 200, alpha = 0.01) over {len(clog)} test images" in text
+    assert f"| certify | 1 | {len(clog)} |" in text and f"| {machine()} (1 run) |" in text
+    assert "| train | 1 |" in text and "| smooth |" not in text  # stages that did not run are left out
+    # A store without paper-profile runs gets no section.
+    assert results_page.paper_profile_section(index(gpu_store.parent / "nothing-here")) == []
+
+
+def runs_of(out: Path) -> tuple[mlflow.MlflowClient, dict]:
+    client = mlflow.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("mrcert")
+    return client, {r.info.run_id: r for r in client.search_runs([exp.experiment_id])}
+
+
+def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
+    # Gathered into a laptop store, which is then moved (as when copied off a GPU machine) and
+    # gathered again into a third store: the artifacts come from the moved folder.
+    laptop, moved, page_store = tmp_path / "laptop", tmp_path / "moved", tmp_path / "page"
+    assert gather(laptop, gpu_store)["gathered"] == 2  # the train and the certify run
+    shutil.move(laptop, moved)
+    done = gather(page_store, moved)  # those two and the laptop's gather run
+    assert (done["gathered"], done["without_artifacts"], done["kept_keys"]) == (3, 0, 0)
+    there, here = index(gpu_store, "paper"), index(page_store, "paper")
+    ours = tables.certified_table(here, name="t")
+    assert ours.equals(tables.certified_table(there, name="t")) and ours.notna().any().any()
+    # The copy's certification names the copied model, which loads here.
+    cell = here.cell("table3", ("motion=tz", "model.variant=vanilla"), tables.CERTIFIED)
+    train = cell.runs[0]["tags.mrcert.train_run"]
+    assert cell.cfg.model.checkpoint == f"runs:/{train}/checkpoints/best.pt"
+    assert read_checkpoint(local_checkpoint(cell.cfg.model.checkpoint))["arch"] == "small_cnn"
+    # Each copy keeps its name, times, params and every metric's history.
+    (src, originals), (_, middle), (dst, copies) = runs_of(gpu_store), runs_of(moved), runs_of(page_store)
+    checked = 0
+    for copy in copies.values():
+        origin = middle.get(copy.data.tags.get(GATHERED))
+        if origin is None or origin.data.tags.get(GATHERED) not in originals:
+            continue
+        original = originals[origin.data.tags[GATHERED]]
+        assert (copy.info.run_name, copy.info.start_time, copy.info.end_time) == (
+            original.info.run_name,
+            original.info.start_time,
+            original.info.end_time,
+        )
+        assert copy.data.params.keys() == original.data.params.keys()
+        for key in original.data.metrics:
+            theirs = [(m.step, m.value) for m in src.get_metric_history(original.info.run_id, key)]
+            assert [(m.step, m.value) for m in dst.get_metric_history(copy.info.run_id, key)] == theirs
+        checked += 1
+    assert checked == 2
+    # A second gather copies nothing; a copy a kill left unfinished is made again.
+    assert gather(page_store, moved)["gathered"] == 0
+    dst.set_terminated(cell.runs[0]["run_id"], "KILLED")
+    again = gather(page_store, moved)
+    assert (again["gathered"], again["already_here"]) == (1, 2)
+    assert tables.certified_table(index(page_store, "paper"), name="t").equals(ours)
+
+
+def test_a_store_that_is_not_one_is_refused_before_any_run(tmp_path):
+    proc = run_cli(["task=gather", f"task.source={tmp_path}"], tmp_path / "out")
+    assert proc.returncode != 0 and f"task.source='{tmp_path}' is not an mrcert store" in proc.stderr
+    assert not (tmp_path / "out" / "mlflow.db").exists()
