@@ -12,6 +12,8 @@ recomputed from its (merged) per-image logs by the task's own ``summarize``.
 
 from __future__ import annotations
 
+import copy
+import functools
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,12 +34,17 @@ KEY, CELL = "tags.mrcert.key", "tags.mrcert.cell"
 
 
 def compose_config(overrides: Iterable[str]) -> DictConfig:
-    """The config that ``mrcert OVERRIDES`` would run (with its ``hydra`` node)."""
-    overrides = list(overrides)
+    """The config that ``mrcert OVERRIDES`` would run (with its ``hydra`` node); a copy of the
+    one composed the first time, since the tables compose the same cells over and over."""
+    return copy.deepcopy(_composed(tuple(overrides)))
+
+
+@functools.cache
+def _composed(overrides: tuple[str, ...]) -> DictConfig:
     if GlobalHydra.instance().is_initialized():  # inside a launch
-        return compose("config", overrides=overrides, return_hydra_config=True)
+        return compose("config", overrides=list(overrides), return_hydra_config=True)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=overrides, return_hydra_config=True)
+        return compose("config", overrides=list(overrides), return_hydra_config=True)
 
 
 @dataclass

@@ -290,6 +290,9 @@ def paper_profile_section(src: Source) -> list[str]:
     100-epoch recipe, a GPU's work), when the store holds any of its Table 3 runs (e.g. gathered
     from a GPU with ``task=gather``): the filled rows beside the paper, their base models, and the
     time each stage took on which machine."""
+    profiles = src.index.df.get("tags.mrcert.profile", pd.Series(dtype=str))
+    if not (profiles == PAPER_PROFILE).any():  # nothing to show: compose none of its cells
+        return []
     paper = Source(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
     filled = {
         (AXIS_NAMES.get(j.axis, j.axis), model_label(j.arch, j.variant)): j
