@@ -21,6 +21,7 @@ the path recorded in the store is gone.
 
 from __future__ import annotations
 
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -77,12 +78,14 @@ def _finished_runs(client, experiment_id: str) -> list:
     return sorted(runs, key=order)
 
 
+RUN_ID = re.compile(r"(?<![0-9a-f])[0-9a-f]{32}(?![0-9a-f])")
+"""An MLflow run id (32 hex digits), bare or inside ``runs:/<id>/...``."""
+
+
 def _rewrite(text: str, ids: dict[str, str]) -> str:
-    """``text`` with every ``runs:/<source id>/`` and bare source id of a copied run replaced."""
-    for old, new in ids.items():
-        if old != new and old in text:
-            text = text.replace(old, new)
-    return text
+    """``text`` with every source run id of a copied run replaced by its copy's: one pass over
+    the text, however many runs were copied."""
+    return RUN_ID.sub(lambda m: ids.get(m[0], m[0]), text)
 
 
 def _artifacts(client, run, folder: Path | None, into: Path) -> bool:
