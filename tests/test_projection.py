@@ -321,6 +321,36 @@ def test_a_test_sample_renders_the_images_of_its_cloud_as_given(rng):
         assert torch.equal(images, reference[0]) and torch.equal(depth, reference[1])
 
 
+def test_the_locality_order_meets_each_pixels_nearest_point_first(rng):
+    """What makes the z-test cheap: in locality order, points come tile by tile (32x32 pixels at
+    the unmoved camera) and nearest first within a tile, so that a pixel rarely replaces its
+    winner. Tiles and depths recomputed here with NumPy."""
+    pts, _ = random_cloud(rng, n=30000, behind=0)
+    order = projection.locality_order(pts, PAPER_K, 90, 160).numpy()
+    p = pts.numpy()[order]
+    fx, cx, cy = 386.274, 80.0, 45.0
+    # pixels on the image plane extended by 4 images on each side, beyond which they are clamped
+    u = np.clip(np.floor(fx * (p[:, 0] / p[:, 2]) + cx), -4 * 160, 5 * 160 - 1) + 4 * 160
+    v = np.clip(np.floor(fx * (p[:, 1] / p[:, 2]) + cy), -4 * 90, 5 * 90 - 1) + 4 * 90
+    tile = (v // 32) * -(-9 * 160 // 32) + u // 32
+    assert (np.diff(tile) >= 0).all()
+    same_tile = np.diff(tile) == 0
+    assert same_tile.mean() > 0.9
+    assert (np.diff(p[:, 2])[same_tile] >= 0).all()
+
+
+def test_the_locality_order_does_not_depend_on_the_order_points_come_in(rng):
+    """``project()`` renders a cloud in its locality order, so a shuffled cloud costs what the
+    ordered one does only if both end up in the same order: also for points at one depth (a wall
+    facing the camera, one point per pixel, 1 cm apart at 3 m), which the depth cannot order."""
+    gx, gy = np.meshgrid(np.arange(-1.5, 1.5, 0.01), np.arange(-0.8, 0.8, 0.01))
+    wall = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 3.0)])
+    pts = torch.from_numpy(np.concatenate([wall, random_cloud(rng, n=5000, behind=0)[0].numpy()]))
+    order = projection.locality_order(pts, PAPER_K, 90, 160)
+    shuffle = torch.from_numpy(rng.permutation(len(pts)))
+    assert torch.equal(shuffle[projection.locality_order(pts[shuffle], PAPER_K, 90, 160)], order)
+
+
 @pytest.mark.parametrize("spread", [5.0, 20.0])
 def test_culled_blocks_change_no_pixel(spread, rng):
     """Mostly off-screen clouds in locality order (so whole blocks are skipped): the numba

@@ -155,26 +155,33 @@ def _camera_kernel(P, R, t, out):  # pragma: no cover - compiled
             out[i, j] = R[0, j] * dx + R[1, j] * dy + R[2, j] * dz
 
 
-def locality_order(points: torch.Tensor, K: torch.Tensor, height: int, width: int, tile: int = 8) -> torch.Tensor:
+def locality_order(points: torch.Tensor, K: torch.Tensor, height: int, width: int, tile: int = 32) -> torch.Tensor:
     """A permutation of ``points`` (N, 3, camera frame) that renders fast whatever order they came in.
 
     Points in front of the camera are grouped by the ``tile`` x ``tile`` pixel tile they fall in
     at the unmoved camera -- on the image plane extended well beyond the image, since a motion
-    brings points from outside into view -- tiles row by row, pixels row by row within a tile,
-    nearest first within a pixel; points behind the camera come last. Under the small motions
-    of smoothing, consecutive points then touch nearby z-buffer entries and the kernel's
-    branches are predictable. Rendering the permuted cloud with ``rank=perm`` gives exactly the
-    images of the original order (:func:`project` does this itself). One stable sort of one
-    integer key per point: the key's high bits hold the pixel, its low bits the depth.
+    brings points from outside into view -- tiles row by row, nearest first within a tile;
+    points behind the camera come last. Under the small motions of smoothing, consecutive points
+    then touch nearby z-buffer entries, a block of them spans a small solid angle (so that the
+    kernel's culling works), and each pixel mostly meets its nearest point first, so that the
+    z-test rarely replaces a winner and its branch is predictable (nearest first within a tile
+    rather than within a pixel: a motion moves points between pixels, not much between tiles).
+    Rendering the permuted cloud with ``rank=perm`` gives exactly the images of the original
+    order (:func:`project` does this itself). One stable sort of one integer key per point: the
+    key's high bits hold the tile, then the depth, then the pixel within the tile (points at one
+    depth, as on a wall facing the camera, stay in image order whatever order they came in).
     """
     xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).cpu().numpy())
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     margin = 4  # image sizes of extended plane on each side
     tiles_x = -(-(2 * margin + 1) * width // tile)
     tiles_y = -(-(2 * margin + 1) * height // tile)
-    pixel_bits = int(tiles_x * tiles_y * tile * tile).bit_length()  # the largest key is "behind the camera"
+    tile_bits = int(tiles_x * tiles_y).bit_length()  # the largest key is "behind the camera"
+    pixel_bits = (tile * tile - 1).bit_length()
     keys = np.empty(xyz.shape[0], np.int64)
-    _locality_keys(xyz, fx, fy, cx, cy, height, width, tile, margin, tiles_x, pixel_bits, _farthest(xyz), keys)
+    _locality_keys(
+        xyz, fx, fy, cx, cy, height, width, tile, margin, tiles_x, tile_bits, pixel_bits, _farthest(xyz), keys
+    )
     return torch.sort(torch.from_numpy(keys), stable=True).indices
 
 
@@ -188,19 +195,23 @@ def _farthest(P):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _locality_keys(P, fx, fy, cx, cy, height, width, tile, margin, tiles_x, pixel_bits, far, out):  # pragma: no cover
-    depth_levels = (1 << (62 - pixel_bits)) - 1
-    behind = (1 << pixel_bits) - 1
+def _locality_keys(
+    P, fx, fy, cx, cy, height, width, tile, margin, tiles_x, tile_bits, pixel_bits, far, out
+):  # pragma: no cover
+    depth_bits = 62 - tile_bits - pixel_bits
+    depth_levels = (1 << depth_bits) - 1
+    behind = (1 << tile_bits) - 1
     for i in numba.prange(P.shape[0]):
         z = P[i, 2]
         if not z > 0.0:
-            out[i] = behind << (62 - pixel_bits)
+            out[i] = behind << (62 - tile_bits)
             continue
         u = min(max(np.floor(fx * (P[i, 0] / z) + cx), -margin * width), (margin + 1) * width - 1) + margin * width
         v = min(max(np.floor(fy * (P[i, 1] / z) + cy), -margin * height), (margin + 1) * height - 1) + margin * height
         iu, iv = int(u), int(v)
-        pixel = ((iv // tile) * tiles_x + iu // tile) * tile * tile + (iv % tile) * tile + iu % tile
-        out[i] = (pixel << (62 - pixel_bits)) | int(min(z / far, 1.0) * depth_levels)
+        cell = (iv // tile) * tiles_x + iu // tile
+        depth = int(min(z / far, 1.0) * depth_levels)
+        out[i] = (cell << (62 - tile_bits)) | (depth << pixel_bits) | ((iv % tile) * tile + iu % tile)
 
 
 PREPARED_CLOUDS = 2
