@@ -328,10 +328,10 @@ def test_the_locality_order_meets_each_pixels_nearest_point_first(rng):
     pts, _ = random_cloud(rng, n=30000, behind=0)
     order = projection.locality_order(pts, PAPER_K, 90, 160).numpy()
     p = pts.numpy()[order]
-    fx, cx, cy = 386.274, 80.0, 45.0
+    fx, fy, cx, cy = (float(v) for v in (PAPER_K[0, 0], PAPER_K[1, 1], PAPER_K[0, 2], PAPER_K[1, 2]))
     # pixels on the image plane extended by 4 images on each side, beyond which they are clamped
     u = np.clip(np.floor(fx * (p[:, 0] / p[:, 2]) + cx), -4 * 160, 5 * 160 - 1) + 4 * 160
-    v = np.clip(np.floor(fx * (p[:, 1] / p[:, 2]) + cy), -4 * 90, 5 * 90 - 1) + 4 * 90
+    v = np.clip(np.floor(fy * (p[:, 1] / p[:, 2]) + cy), -4 * 90, 5 * 90 - 1) + 4 * 90
     tile = (v // 32) * -(-9 * 160 // 32) + u // 32
     assert (np.diff(tile) >= 0).all()
     same_tile = np.diff(tile) == 0
