@@ -4,7 +4,8 @@ inference path the tasks use (channels-last weights, ``task.batch_size``) and, w
 ``--compile``, torch.compile.
 
 ResNet-18 (20 classes; with ``--device cuda`` ResNet-18 and ResNet-50), 160x90, CERTIFY with
-n0 + n = 100 + 1000 in batches of ``task.batch_size`` on a test sample of the quick synthetic
+n0 + n = 100 + 1000 in batches of ``task.batch_size``, rendered several batches at once as the
+tasks do, on a test sample of the quick synthetic
 MetaRoom (cropped for the axis's smoothing, exact), on the given threads or GPU; the reference
 is the same 1100 forward passes on the sample's own renders, measured in the same run, and
 every variant of the forward passes must predict the same classes on them. On CUDA the
@@ -52,7 +53,7 @@ def run(args, arch: str) -> None:
     from mrcert.core.smoothing import SmoothedClassifier, SmoothingDistribution, image_generator
     from mrcert.data.sources import load
     from mrcert.infra.config import CONF_DIR
-    from mrcert.infra.runtime import batch_size
+    from mrcert.infra.runtime import batch_size, render_batch
 
     torch.set_num_threads(args.threads)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -78,6 +79,7 @@ def run(args, arch: str) -> None:
         raise SystemExit("--device cuda: no CUDA device here")
     overlap = args.overlap or device.type == "cuda"
     batch = batch_size(cfg.task.batch_size, device)
+    chunk = render_batch(batch, sample.height, sample.width)
     eager = build_model(cfg.model, 20).to(device).eval()
     model = for_inference(copy.deepcopy(eager), device)
     motions = dist.sample(1100, image_generator(0, 0))
@@ -101,7 +103,7 @@ def run(args, arch: str) -> None:
         start = time.perf_counter()
         test_sample = samples[0]  # building the sample (cloud in the camera frame, crop) is per-image work
         built = time.perf_counter() - start
-        smoothed = SmoothedClassifier(model, dist, 20, batch, device, overlap=overlap)
+        smoothed = SmoothedClassifier(model, dist, 20, batch, device, overlap, chunk)
         smoothed.certify(test_sample.renderer(), 100, 1000, 0.01, image_generator(0, 0))
         total = time.perf_counter() - start
         return total, built, smoothed.votes.timings["render"], smoothed.votes.timings["model"]
@@ -128,7 +130,8 @@ def run(args, arch: str) -> None:
     print(
         f"{arch}, {args.axis} (sigma {dist.sigmas[0]}), {args.profile} MetaRoom sample: "
         f"{len(sample.points):,} points, {len(sample.crop_points):,} after the crop; "
-        f"n0 + n = 1100, batch {batch}, {where}{', overlapped rendering' if overlap else ''}, median of {args.repeats}"
+        f"n0 + n = 1100, batch {batch} (rendered {chunk} at once), {where}"
+        f"{', overlapped rendering' if overlap else ''}, median of {args.repeats}"
     )
     print(f"{'':<34}{'seconds':>10}{'vs model alone':>16}")
     for name, value in (

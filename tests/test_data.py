@@ -181,6 +181,22 @@ def test_cache_hits_on_same_config_and_misses_on_change(tmp_path):
     assert aug.cache_info["train-rz-aug"]["hit"] is False and not np.array_equal(np.array(augmented.images), images)
 
 
+def test_a_test_sample_moves_only_its_crop_into_the_camera_frame(tmp_path):
+    """Building a data set's test sample, and rendering it within its crop's bound, leaves the
+    whole cloud in the world frame (only the crop is moved: per image, most of the sample's
+    cost); the first motion beyond the bound moves it, once, into exactly the crop's frame."""
+    bundle = load(data_cfg("metaroom_synth", TINY, tmp_path))
+    sample = bundle.samples(crop=CropBound((0.0, 0.0, 0.6)))[0]
+    sample.render(torch.tensor([[0.0, 0.0, 0.3, 0.0, 0.0, 0.0]], dtype=torch.float64))
+    assert "points" not in vars(sample)
+    sample.render(torch.tensor([[0.0, 0.0, 0.9, 0.0, 0.0, 0.0]], dtype=torch.float64))  # beyond the bound
+    moved = vars(sample)["points"]
+    pose = matrix_to_motion(torch.from_numpy(bundle.split("test").poses[0]))
+    assert torch.equal(moved, camera_points(torch.from_numpy(bundle.cloud(0)[0]), pose))
+    assert torch.equal(moved[sample.crop_rank], sample.crop_points)
+    assert sample.points is moved
+
+
 @pytest.mark.parametrize(
     "bound,scale",
     [

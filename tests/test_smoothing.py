@@ -21,6 +21,7 @@ from mrcert.core.smoothing import (
 )
 from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
+from mrcert.infra.runtime import render_batch
 from mrcert.reporting.certify_log import ResultLog, merge_logs, read_log
 from tests.conftest import PAPER_K, TINY, compose_cfg, kill_when, run_cli
 
@@ -343,6 +344,64 @@ def test_overlapped_rendering_gives_the_same_votes():
     a = plain.sample_counts(tiny_sample().renderer(), 450, image_generator(0, 9))
     b = overlapped.sample_counts(tiny_sample().renderer(), 450, image_generator(0, 9))
     assert a.sum() == 450 and (a > 0).sum() > 1 and np.array_equal(a, b)
+
+
+class Calls:
+    """A render that records the size of every call it gets."""
+
+    def __init__(self, render):
+        self.render, self.sizes = render, []
+
+    def __call__(self, motions):
+        self.sizes.append(len(motions))
+        return self.render(motions)
+
+
+class Batches(Brightness):
+    """:class:`Brightness` recording the size of every batch it classifies."""
+
+    def __init__(self):
+        super().__init__()
+        self.sizes = []
+
+    def forward(self, x):
+        self.sizes.append(len(x))
+        return super().forward(x)
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_renders_draw_several_model_batches_at_once_and_give_the_same_votes(overlap):
+    """Each render call costs a fixed amount besides its images, so the tasks draw several model
+    batches per call (runtime.render_batch); the model still classifies batch by batch, and the
+    votes are those of one render per batch."""
+    dist = SmoothingDistribution(("rz",), (0.3,))
+    model = Batches()
+    chunked = SmoothedClassifier(model, dist, 4, batch_size=16, overlap=overlap, render_batch=64)
+    render = Calls(tiny_sample().renderer())
+    votes = chunked.sample_counts(render, 150, image_generator(0, 9))
+    assert render.sizes == [64, 64, 22]
+    assert model.sizes == [16] * 9 + [6]
+    plain = SmoothedClassifier(Brightness(), dist, 4, batch_size=16).sample_counts(
+        tiny_sample().renderer(), 150, image_generator(0, 9)
+    )
+    assert votes.sum() == 150 and (votes > 0).sum() > 1 and np.array_equal(votes, plain)
+
+
+def test_render_batch_is_whole_model_batches_within_the_pixel_budget():
+    assert render_batch(16, 90, 160) == 144  # the quick MetaRoom on a CPU: 9 batches, 2.07M pixels
+    assert render_batch(200, 90, 160) == 200  # one batch over the budget is still rendered whole
+    assert render_batch(16, 1080, 1920) == 16
+    with pytest.raises(ValueError, match="render_batch=40 must be a multiple of batch_size=16"):
+        SmoothedClassifier(Brightness(), SmoothingDistribution(("rz",), (0.3,)), 4, 16, render_batch=40)
+
+
+def test_the_tasks_render_several_batches_at_once(trained, tmp_path):
+    from mrcert.tasks.evaluation import prepare
+
+    ev = prepare(tiny_cfg(["task=certify", f"model.checkpoint={best(trained)}"], tmp_path))
+    votes = ev.smoothed.votes
+    assert votes.render_batch == render_batch(votes.batch_size, ev.bundle.height, ev.bundle.width)
+    assert votes.render_batch > votes.batch_size
 
 
 def test_the_tasks_inference_path_predicts_the_classes_of_the_eager_model(trained, tmp_path):

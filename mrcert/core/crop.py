@@ -10,6 +10,8 @@ import numba
 import numpy as np
 import torch
 
+from mrcert.core.projection import rotations, to_camera
+
 
 def frustum_half_angle(K: torch.Tensor, height: int, width: int) -> float:
     """Half-angle of the cone around the optical axis that contains the image's frustum."""
@@ -48,13 +50,24 @@ class CropBound:
             return ok & (motions[:, 3:5] == 0).all(dim=1) & (motions[:, 5].abs() <= self.rotation)
         return ok & (torch.linalg.vector_norm(motions[:, 3:], dim=1) <= self.rotation)
 
-    def mask(self, points: torch.Tensor, K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    def mask(
+        self, points: torch.Tensor, K: torch.Tensor, height: int, width: int, frame: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Which of ``points`` (N, 3) to keep: points in the camera frame, or, given ``frame`` (a
+        motion (6,)), in a frame whose camera frame is ``camera_points(points, frame)``, each
+        point moved there with exactly its operations (the cloud's camera-frame copy is not made)."""
         pts = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).cpu().numpy())
+        moved = frame is not None
+        frame = torch.zeros(6, dtype=torch.float64) if frame is None else torch.as_tensor(frame, dtype=torch.float64)
+        R = rotations(frame.reshape(1, 6).cpu())[0].numpy()
         kx, ky = frustum_slopes(K, height, width)
         mode = (0 if self.rotation == 0 else 1) if self.roll_only else 2
         out = np.empty(len(pts), np.bool_)
         _crop_kernel(
             pts,
+            moved,
+            R,
+            frame[:3].cpu().numpy(),
             mode,
             kx,
             ky,
@@ -66,13 +79,13 @@ class CropBound:
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _crop_kernel(P, mode, kx, ky, box, cone_limit, out):  # pragma: no cover - compiled
+def _crop_kernel(P, moved, R, t, mode, kx, ky, box, cone_limit, out):  # pragma: no cover - compiled
     slack = 1e-9
     t_xy = np.sqrt(box[0] * box[0] + box[1] * box[1])
     t_norm = np.sqrt(t_xy * t_xy + box[2] * box[2])
     kc = np.sqrt(kx * kx + ky * ky)
     for i in numba.prange(P.shape[0]):
-        x, y, z = P[i, 0], P[i, 1], P[i, 2]
+        x, y, z = to_camera(P, i, R, t) if moved else (P[i, 0], P[i, 1], P[i, 2])
         depth = z + box[2]
         if mode == 0:
             out[i] = depth > 0 and abs(x) - box[0] <= kx * depth + slack and abs(y) - box[1] <= ky * depth + slack

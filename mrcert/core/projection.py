@@ -148,11 +148,21 @@ def camera_points(points: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _camera_kernel(P, R, t, out):  # pragma: no cover - compiled
     for i in numba.prange(P.shape[0]):
-        dx = P[i, 0] - t[0]
-        dy = P[i, 1] - t[1]
-        dz = P[i, 2] - t[2]
-        for j in range(3):
-            out[i, j] = R[0, j] * dx + R[1, j] * dy + R[2, j] * dz
+        out[i, 0], out[i, 1], out[i, 2] = to_camera(P, i, R, t)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def to_camera(P, i, R, t):  # pragma: no cover - compiled
+    """Row ``i`` of ``P`` as ``R^T (P_i - t)``: the float64 operations of :func:`camera_points`,
+    for compiled kernels that need a point's camera coordinates without storing the cloud's."""
+    dx = P[i, 0] - t[0]
+    dy = P[i, 1] - t[1]
+    dz = P[i, 2] - t[2]
+    return (
+        R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz,
+        R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz,
+        R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz,
+    )
 
 
 def locality_order(points: torch.Tensor, K: torch.Tensor, height: int, width: int, tile: int = 32) -> torch.Tensor:
@@ -370,7 +380,7 @@ def _project_numba(cloud: _Cloud, R, t, intr, background):
     height, width = cloud.height, cloud.width
     b, c = R.shape[0], cloud.colors.shape[1]
     images = np.empty((b, c, height * width), dtype=cloud.colors.dtype)
-    depth = np.full((b, height * width), np.inf, dtype=np.float64)
+    depth = np.empty((b, height * width), dtype=np.float64)  # the kernel fills each motion's, in parallel
     if b:
         _zbuffer_kernel(
             cloud.points,
@@ -472,6 +482,7 @@ def _zbuffer_kernel(
         r20, r21, r22 = R[b, 2, 0], R[b, 2, 1], R[b, 2, 2]
         tx, ty, tz = t[b, 0], t[b, 1], t[b, 2]
         zbuf = depth[b]
+        zbuf[:] = np.inf
         wbuf = np.full(height * width, -1, np.int64)
         pixel = np.empty(block, np.int32)
         zs = np.empty(block, np.float64)

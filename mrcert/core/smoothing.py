@@ -182,36 +182,52 @@ def image_generator(seed: int, index: int, *stream) -> torch.Generator:
 class VoteCounter:
     """The base classifier's votes over the images of a :data:`Render`, in batches.
 
-    With ``overlap``, a worker thread renders the next batch while the model classifies the
-    current one (the projection kernel and torch both release the GIL). ``timings`` adds up
-    the seconds spent waiting for renders and in the model (for benchmarks).
+    The model classifies ``batch_size`` images at once; the render draws ``render_batch`` at
+    once (a multiple of ``batch_size``, default ``batch_size``), since each call to a render
+    costs a fixed amount besides its images (:func:`~mrcert.infra.runtime.render_batch`).
+    With ``overlap``, a worker thread renders the next batch of renders while the model
+    classifies the current one (the projection kernel and torch both release the GIL).
+    ``timings`` adds up the seconds spent waiting for renders and in the model (for benchmarks).
+    The votes do not depend on either size: each image is its input's, whatever it is drawn with.
     """
 
-    def __init__(self, base: torch.nn.Module, num_classes: int, batch_size: int = 200, device="cpu", overlap=False):
-        self.base, self.num_classes, self.batch_size = base, num_classes, batch_size
+    def __init__(
+        self,
+        base: torch.nn.Module,
+        num_classes: int,
+        batch_size: int = 200,
+        device="cpu",
+        overlap=False,
+        render_batch: int | None = None,
+    ):
+        render_batch = batch_size if render_batch is None else render_batch
+        if render_batch < batch_size or render_batch % batch_size:
+            raise ValueError(f"render_batch={render_batch} must be a multiple of batch_size={batch_size}")
+        self.base, self.num_classes, self.batch_size, self.render_batch = base, num_classes, batch_size, render_batch
         self.device, self.overlap = device, overlap
         self.timings = {"render": 0.0, "model": 0.0}
 
     @torch.inference_mode()
     def __call__(self, render: Callable[[torch.Tensor], torch.Tensor], inputs: torch.Tensor) -> np.ndarray:
         """Votes over ``render(inputs)``, in batches (``inputs``: motions, or sample indices)."""
-        batches = [inputs[s : s + self.batch_size] for s in range(0, len(inputs), self.batch_size)]
+        parts = [inputs[s : s + self.render_batch] for s in range(0, len(inputs), self.render_batch)]
         votes = np.zeros(self.num_classes, np.int64)
         with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
-            pending = pool.submit(render, batches[0]) if pool and batches else None
-            for k, batch in enumerate(batches):
+            pending = pool.submit(render, parts[0]) if pool and parts else None
+            for k, part in enumerate(parts):
                 start = time.perf_counter()
                 if pool:
                     images = pending.result()
-                    if k + 1 < len(batches):
-                        pending = pool.submit(render, batches[k + 1])
+                    if k + 1 < len(parts):
+                        pending = pool.submit(render, parts[k + 1])
                 else:
-                    images = render(batch)
+                    images = render(part)
                 rendered = time.perf_counter()
-                predictions = self.base(images.to(self.device, non_blocking=True)).argmax(1).cpu().numpy()
+                for s in range(0, len(images), self.batch_size):
+                    batch = images[s : s + self.batch_size].to(self.device, non_blocking=True)
+                    votes += np.bincount(self.base(batch).argmax(1).cpu().numpy(), minlength=self.num_classes)
                 self.timings["render"] += rendered - start
                 self.timings["model"] += time.perf_counter() - rendered
-                votes += np.bincount(predictions, minlength=self.num_classes)
         return votes
 
 
@@ -238,9 +254,10 @@ class SmoothedClassifier:
         batch_size: int = 200,
         device: torch.device | str = "cpu",
         overlap: bool = False,
+        render_batch: int | None = None,
     ):
         self.method = method
-        self.votes = VoteCounter(base, num_classes, batch_size, device, overlap)
+        self.votes = VoteCounter(base, num_classes, batch_size, device, overlap, render_batch)
 
     def sample_counts(
         self, render: Render, n: int, generator: torch.Generator, center: torch.Tensor | None = None

@@ -23,7 +23,7 @@ from torch.utils.data import Dataset
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import matrix_to_motion, motion_to_matrix
 from mrcert.core.method import Method
-from mrcert.core.projection import camera_points, project, to_uint8
+from mrcert.core.projection import project, to_uint8
 from mrcert.data.cache import cached_arrays
 from mrcert.data.samples import TestSample
 from mrcert.scenes.scene import intrinsics
@@ -202,9 +202,8 @@ class PosedCloudData(DataBundle):
         def make(i: int) -> TestSample:
             label = int(split.labels[i])
             points, colors = self.cloud(label)
-            cam = camera_points(torch.from_numpy(points), matrix_to_motion(torch.from_numpy(split.poses[i]))).numpy()
             return TestSample.build(
-                cam,
+                points,
                 colors,
                 self.K,
                 self.height,
@@ -212,6 +211,7 @@ class PosedCloudData(DataBundle):
                 label,
                 self.background,
                 downsampling=downsampling,
+                frame=matrix_to_motion(torch.from_numpy(split.poses[i])),
                 **self.crop_args(crop),
             )
 

@@ -22,7 +22,6 @@ from PIL import Image
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import matrix_to_motion
 from mrcert.core.method import Method
-from mrcert.core.projection import camera_points
 from mrcert.data.datasets import DataBundle, ImageSet, SampleSet
 from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
@@ -108,9 +107,8 @@ class ReleasedMetaRoom(DataBundle):
             K[2] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
             cloud = np.asarray(record["point_cloud"], np.float64)
             pose = torch.as_tensor(np.asarray(record["pose"], np.float64))
-            cam = camera_points(torch.from_numpy(cloud[:, :3]), matrix_to_motion(pose))
             return TestSample.build(
-                cam.numpy(),
+                np.ascontiguousarray(cloud[:, :3]),
                 cloud[:, 3:].astype(np.float32),
                 K,
                 self.height,
@@ -118,6 +116,7 @@ class ReleasedMetaRoom(DataBundle):
                 label,
                 self.background,
                 downsampling=downsampling,
+                frame=matrix_to_motion(pose),
                 **self.crop_args(crop),
             )
 

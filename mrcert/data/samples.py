@@ -1,7 +1,7 @@
 """Test samples: what smoothing needs to re-render a test image under any camera motion.
 
-A :class:`TestSample` holds its scene ``V`` in the test pose's camera frame, the camera, and
-the label. Sound speed-ups:
+A :class:`TestSample` holds its scene ``V`` (in the test pose's camera frame, or in a world frame
+with the motion into it), the camera, and the label. Sound speed-ups:
 
 * the same cloud tensors are rendered for every motion, so :func:`~mrcert.core.projection.project`
   sorts each into locality order once and keeps it (a user's scan or a down-sampled cloud is
@@ -10,7 +10,9 @@ the label. Sound speed-ups:
   exactly the whole cloud's images;
 * an exact crop: the points that can land in the image under some motion within a
   :class:`CropBound`. Every other point stays outside the image for such motions, so removing
-  it changes no image; motions beyond the bound are rendered from the full cloud.
+  it changes no image; motions beyond the bound are rendered from the full cloud. A cloud given
+  in a world frame is tested point by point in the camera frame and only the crop is stored
+  there; the whole cloud is moved when a motion beyond the bound first needs it.
 * optional two-stage down-sampling with open3d (every k-th point, then a voxel grid; the
   paper's per-axis values). The down-sampled cloud *is* the sample's ``V`` for every motion,
   so Lemma 1 still holds.
@@ -18,13 +20,14 @@ the label. Sound speed-ups:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from mrcert.core.crop import CropBound
-from mrcert.core.projection import Backend, project
+from mrcert.core.projection import Backend, camera_points, project
 
 
 def downsample(points: np.ndarray, colors: np.ndarray, every_k: int, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -41,11 +44,17 @@ def downsample(points: np.ndarray, colors: np.ndarray, every_k: int, voxel: floa
 
 @dataclass
 class TestSample:
-    """A test image's scene in its camera frame, ready to render under motions."""
+    """A test image's scene, ready to render under motions from its camera.
+
+    ``cloud`` is the scene in the test pose's camera frame, or, with ``frame`` (a motion (6,)),
+    in a frame whose camera frame is ``camera_points(cloud, frame)`` (a data set's world frame):
+    then :attr:`points`, the camera-frame cloud, is made only when first needed -- by a motion
+    beyond the crop's bound, which is rare -- and the crop is moved into the camera frame alone.
+    """
 
     __test__ = False  # not a pytest test class, whatever its name
 
-    points: torch.Tensor  # (N, 3) float64, camera frame of the test pose
+    cloud: torch.Tensor  # (N, 3) float64, the camera frame of the test pose or the frame ``frame`` moves
     colors: torch.Tensor  # (N, C) float32
     K: torch.Tensor
     height: int
@@ -56,6 +65,15 @@ class TestSample:
     crop_points: torch.Tensor | None = field(default=None, repr=False)  # the crop, in the cloud's order
     crop_colors: torch.Tensor | None = field(default=None, repr=False)
     crop_rank: torch.Tensor | None = field(default=None, repr=False)  # each crop point's row in the cloud
+    frame: torch.Tensor | None = None  # (6,) the motion from the cloud's frame to the test pose's camera
+
+    @functools.cached_property
+    def points(self) -> torch.Tensor:
+        """(N, 3) float64: the cloud in the test pose's camera frame."""
+        if self.frame is None:
+            return self.cloud
+        with torch.inference_mode(False):  # a plain tensor, which project() can recognise (build())
+            return camera_points(self.cloud, self.frame)
 
     @classmethod
     def build(
@@ -69,16 +87,23 @@ class TestSample:
         background: float = 1.0,
         bound: CropBound | None = None,
         downsampling: tuple[int, float] | None = None,
+        frame=None,
     ) -> TestSample:
+        """A sample of ``points`` in the camera frame, or, given ``frame`` (a motion (6,)), in the
+        frame that ``camera_points(points, frame)`` moves into it; ``bound``: crop it exactly for
+        the motions inside; ``downsampling``: :func:`downsample` it in the camera frame first."""
         # Plain tensors even when built under torch.inference_mode (as the attack does): project()
         # recognises a cloud it has sorted by the tensors' version counters, which only they have.
         with torch.inference_mode(False):
-            return cls._build(points, colors, K, height, width, label, background, bound, downsampling)
+            return cls._build(points, colors, K, height, width, label, background, bound, downsampling, frame)
 
     @classmethod
-    def _build(cls, points, colors, K, height, width, label, background, bound, downsampling) -> TestSample:
+    def _build(cls, points, colors, K, height, width, label, background, bound, downsampling, frame) -> TestSample:
         points, colors = np.asarray(points, np.float64), np.asarray(colors, np.float32)
-        if downsampling is not None:
+        frame = None if frame is None else torch.as_tensor(frame, dtype=torch.float64).reshape(6)
+        if downsampling is not None:  # in the camera frame, where the voxel grid is defined
+            if frame is not None:
+                points, frame = camera_points(torch.from_numpy(points), frame).numpy(), None
             points, colors = downsample(points, colors, *downsampling)
         K = torch.as_tensor(K, dtype=torch.float64)
         sample = cls(
@@ -89,11 +114,14 @@ class TestSample:
             int(width),
             int(label),
             float(background),
+            frame=frame,
         )
         if bound is not None:  # the crop is what gets rendered (rarer motions use the whole cloud)
-            mask = bound.mask(sample.points, sample.K, sample.height, sample.width)
+            mask = bound.mask(sample.cloud, sample.K, sample.height, sample.width, frame)
+            kept = sample.cloud[mask]
             sample.bound = bound
-            sample.crop_points, sample.crop_colors = sample.points[mask], sample.colors[mask]
+            sample.crop_points = kept if frame is None else camera_points(kept, frame)
+            sample.crop_colors = sample.colors[mask]
             sample.crop_rank = torch.nonzero(mask).flatten()
         return sample
 
@@ -116,8 +144,9 @@ class TestSample:
 
     def render(self, motions, backend: Backend = "auto") -> tuple[torch.Tensor, torch.Tensor]:
         """``O(V, alpha)`` for motions (B, 6): images (B, C, H, W) and depth (B, H, W)."""
-        motions = torch.as_tensor(motions, dtype=torch.float64, device=self.points.device).reshape(-1, 6)
-        inside = self.within_bound(motions).to(self.points.device)
+        device = self.colors.device
+        motions = torch.as_tensor(motions, dtype=torch.float64, device=device).reshape(-1, 6)
+        inside = self.within_bound(motions).to(device)
         if bool(inside.all()):
             return self._project(self.crop_points, self.crop_colors, self.crop_rank, motions, backend)
         if not bool(inside.any()):
@@ -128,9 +157,9 @@ class TestSample:
             self.height,
             self.width,
             dtype=self.colors.dtype,
-            device=self.points.device,
+            device=device,
         )
-        depth = torch.empty(len(motions), self.height, self.width, dtype=torch.float64, device=self.points.device)
+        depth = torch.empty(len(motions), self.height, self.width, dtype=torch.float64, device=device)
         crop = self._project(self.crop_points, self.crop_colors, self.crop_rank, motions[inside], backend)
         full = self._project(self.points, self.colors, None, motions[~inside], backend)
         (images[inside], depth[inside]), (images[~inside], depth[~inside]) = crop, full

@@ -21,7 +21,7 @@ from mrcert.data.sources import load
 from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.progress import progress
-from mrcert.infra.runtime import batch_size, resolve_device
+from mrcert.infra.runtime import batch_size, render_batch, resolve_device
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting.certify_log import ResultLog, read_log
@@ -67,7 +67,9 @@ def prepare(cfg: DictConfig) -> Evaluation:
     model = load_classifier(cfg, len(bundle.classes), device)
     indices = job_indices(len(samples), int(t.skip), t.get("max"), int(t.shard), int(t.num_shards))
     overlap = device.type == "cuda"  # rendering beside the model pays off when it runs on a GPU
-    smoothed = SmoothedClassifier(model, method, len(bundle.classes), batch_size(t.batch_size, device), device, overlap)
+    batch = batch_size(t.batch_size, device)
+    renders = render_batch(batch, bundle.height, bundle.width)
+    smoothed = SmoothedClassifier(model, method, len(bundle.classes), batch, device, overlap, renders)
     return Evaluation(bundle, samples, model, smoothed, indices, device, str(t.get("backend", "auto")))
 
 
