@@ -185,8 +185,8 @@ class VoteCounter:
     The model classifies ``batch_size`` images at once; the render draws ``render_batch`` at
     once (a multiple of ``batch_size``, default ``batch_size``), since each call to a render
     costs a fixed amount besides its images (:func:`~mrcert.infra.runtime.render_batch`).
-    With ``overlap``, a worker thread renders the next batch of renders while the model
-    classifies the current one (the projection kernel and torch both release the GIL).
+    With ``overlap``, a worker thread renders the next ``render_batch`` inputs while the model
+    classifies the current ones (the projection kernel and torch both release the GIL).
     ``timings`` adds up the seconds spent waiting for renders and in the model (for benchmarks).
     The votes do not depend on either size: each image is its input's, whatever it is drawn with.
     """
