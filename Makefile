@@ -16,7 +16,7 @@ THREADS ?= 2
 DEVICE ?= cpu
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo reproduce-tables results learning-curve side-by-side test test-full test-gpu bench ui server clean lint
+.PHONY: help install demo figures reproduce-tables results learning-curve side-by-side test test-full test-gpu bench ui server clean lint
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -34,6 +34,15 @@ demo: $(STAMP) ## quick pipeline: data, two small models, certify + attack a sub
 	$(MRCERT) -m experiment=demo task=train
 	$(MRCERT) -m experiment=demo task=certify,smooth,attack
 	$(MRCERT) -m task=tables task.experiment=demo
+
+# A fresh demo store for the README's pictures (removed and remade by make figures).
+FIGURES ?= $(OUTPUTS)/figures
+
+figures: $(STAMP) ## the README's pictures from a fresh demo store: the method overview and the MLflow runs page
+	rm -rf $(FIGURES)
+	MRCERT_OUTPUTS=$(abspath $(FIGURES)) $(MAKE) --no-print-directory demo
+	cp $(FIGURES)/tables/method_overview.png docs/method_overview.png
+	$(PY) -m mrcert.reporting.screenshot $(FIGURES) docs/mlflow_runs.png
 
 reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished work is skipped
 	for e in table3 table1 tabletop; do $(MRCERT) -m experiment=$$e profile=$(PROFILE) task=train || exit 1; done

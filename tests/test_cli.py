@@ -60,8 +60,8 @@ def test_two_job_multirun_is_two_children_under_one_finished_parent(tmp_path):
 
 @pytest.mark.slow
 def test_a_sweep_over_tasks_is_one_parent_holding_every_job(tmp_path):
-    """Issue 22: `-m task=certify,smooth,attack` left an empty parent tagged with the default
-    task (its folder under multiruns/render/) while the jobs, finding no parent, were top-level."""
+    """A sweep over tasks (`-m task=render,tables`) is one FINISHED parent, outside the runs page's
+    task groups, and every job is its child: no empty parent, no top-level job."""
     mrcert(["-m", "task=render,tables", "data=testscene", "data.density=0.05"], tmp_path)
     all_runs = runs(tmp_path)
     (parent,) = [r for r in all_runs if r.data.tags.get("mrcert.multirun") == "parent"]
@@ -92,7 +92,7 @@ def test_make_learning_curve_trains_exactly_the_experiments_the_page_s_curve_rea
 
 @pytest.mark.slow
 def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs(tmp_path):
-    """Issue 22: make demo's last step (task=tables) was a top-level run outside any sweep. The
+    """Every step of make demo, its tables included, runs as a sweep: a parent and its jobs. The
     demo's own recipe, on a tiny scene, and the runs page's view names metrics the runs log."""
     from mrcert.infra.tracking import EXPERIMENT_TAGS, RUNS_VIEW_METRICS, ui_link_for
 
@@ -116,7 +116,7 @@ def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs
     (group,) = json.loads(EXPERIMENT_TAGS["mlflow.sharedViewState.mrcert"])["groupBy"]["groupByKeys"]
     assert group["mode"] == "tag"
     assert {r.info.run_id for r in all_runs if group["groupByData"] not in r.data.tags} == parents
-    assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith("/runs?viewStateShareKey=mrcert")
+    assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith("/runs?workflowType=machine_learning&viewStateShareKey=mrcert")
 
 
 def test_failing_job_marks_the_parent_failed_and_keeps_the_other_result(tmp_path):

@@ -299,7 +299,7 @@ def test_metaroom_room_and_table_share_one_material():
 def test_the_declared_scene_extent_is_the_scenes_diagonal(name, tmp_path):
     """data.extent bounds every translation (validation); it must be the scene's own size."""
     data = data_cfg(name, ["data.density=0.05", "data.room_density=0.05"], tmp_path)
-    points = np.concatenate([p for p, _ in FAMILIES[data.source].background(data)])
+    points = np.concatenate([p for p, _ in FAMILIES[data.source].background(data).values()])
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     assert diagonal <= data.extent <= diagonal + 0.01
 

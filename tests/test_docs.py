@@ -38,3 +38,49 @@ def test_method_sections_cited_by_the_code_exist_and_nothing_points_outside():
     assert cited and {c for c in cited if c[1] not in SECTIONS} == set()
     outside = [str(where) for where, _ in references(r"\bSPEC\b|\.\./shared") if where.name != "test_docs.py"]
     assert outside == []
+
+
+# How, when or on which borrowed machine the work was done, or which work item asked for it:
+# the repository describes the product, and a figure names only the machine it was measured on.
+DEVELOPMENT = re.compile(
+    r"""
+    \b20\d\d-[01]\d-[0-3]\d\b                       # a date of work
+    | \bsessions?\b | \bsittings?\b                  # when
+    | \b(?:lent|borrowed)\b                          # whose machine
+    | \bscratch\ (?:copy|store|folder|clone)\b | <scratch>
+    | \b(?:issue|work\ item|ticket|stop)\ ?\#?\d+    # which piece of work asked for it
+    | \bin\ pieces\b | \bwas\ replaced\b | \bcould\ not\ be\ carried\b
+    | \b(?:this|that)\ (?:morning|afternoon|evening)\b | \bat\ the\ time\b
+    """,
+    re.I | re.X,
+)
+PRODUCT = [p for p in TEXT if p.suffix in ("", ".py", ".yaml", ".md") and p.parent.name != ".ci"]
+
+
+def development_lines(paths, root: Path = ROOT) -> list[str]:
+    found = []
+    for path in paths:
+        if path.name == "test_docs.py":
+            continue
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if DEVELOPMENT.search(line):
+                found.append(f"{path.relative_to(root)}:{number}: {line.strip()}")
+    return found
+
+
+def test_the_repository_describes_the_product_not_how_or_when_it_was_built():
+    assert development_lines(PRODUCT) == []
+
+
+def test_the_development_vocabulary_check_catches_what_it_names(tmp_path):
+    caught = [
+        "measured on 2026-11-24 on a lent H100",
+        "in a scratch copy of the code",
+        '"""Issue 20, item 4: no room for the store."""',
+        "the second session's run",
+        "in pieces, because the machine was replaced",
+    ]
+    kept = ["ResNet-18 from scratch, 20 classes", "one NVIDIA H100", "outputs/runs/<task>/<date>_<time>_<id>/"]
+    page = tmp_path / "page.md"
+    page.write_text("\n".join(caught + kept))
+    assert [line.split(": ", 1)[1] for line in development_lines([page], tmp_path)] == caught

@@ -117,7 +117,7 @@ def test_a_half_made_store_is_explained_in_one_line(tmp_path):
 
 
 def test_a_full_disk_while_creating_the_store_is_one_line(tmp_path):
-    """Issue 20, item 4: no room for the store (here a 200 KB file size limit, which SQLite
+    """No room for the store (here a 200 KB file size limit, which SQLite
     meets as a full disk would be met): one line naming the store and the fix, nothing half
     made left behind, and the same command works once there is room."""
     args = ["task=render", "data=testscene", "data.density=0.05", "task.num=2", "task.axes=[tx]"]
@@ -163,7 +163,7 @@ def test_resume_never_mixes_two_models_in_one_run(checkpoints, reference, tmp_pa
 
 
 def test_a_run_folder_reused_by_another_model_never_mixes_rows(checkpoints, reference, tmp_path):
-    """Issue 20, item 1: certify model a into a folder, kill it after a row, certify model b
+    """Certify model a into a folder, kill it after a row, certify model b
     into the same folder, then rerun a's command: each run's log holds only its own rows."""
     folder = tmp_path / "same"
     log = folder / "certify.tsv"
@@ -188,7 +188,7 @@ def test_a_run_folder_reused_by_another_model_never_mixes_rows(checkpoints, refe
 
 @pytest.mark.slow
 def test_identical_jobs_started_together_make_one_run(checkpoints, reference, tmp_path):
-    """Issue 20, item 2: four identical certify jobs, each in its own folder, started together:
+    """Four identical certify jobs, each in its own folder, started together:
     one run computes, the others stop at once naming it; no second run of the key exists."""
     ensure_sqlite_store(tmp_path / "mlflow.db")  # an existing store: the jobs race only for the run
     args = certify_args(checkpoints["a"], n=2000)
@@ -204,7 +204,7 @@ def test_identical_jobs_started_together_make_one_run(checkpoints, reference, tm
 
 
 def test_ctrl_c_is_one_line_and_the_run_is_killed(checkpoints, tmp_path):
-    """Issue 20, item 5: Ctrl-C during certification prints one line (no traceback), exits 130,
+    """Ctrl-C during certification prints one line (no traceback), exits 130,
     and leaves the run KILLED for the same command to resume."""
     proc = start_cli(certify_args(checkpoints["a"], n=2000), tmp_path, interruptible=True)
     wait_until(proc, lambda: any(len(p.read_text().splitlines()) >= 2 for p in certify_logs(tmp_path)))
@@ -314,8 +314,8 @@ def test_bad_input_files_fail_before_any_run_exists(checkpoints, tmp_path):
     ids=["translation beyond the scene", "rotation beyond pi", "curve too fine"],
 )
 def test_a_motion_the_scene_cannot_represent_is_refused_at_once(args, message, tmp_path):
-    """Issue 20, item 3: motion.sigma=1e9 used to certify for minutes, then fail allocating a
-    radius grid of 1.2 TiB (a FAILED run and a traceback)."""
+    """A motion the scene cannot represent (motion.sigma=1e9 would ask for a radius grid of
+    1.2 TiB) stops at once with one line, before any run exists."""
     t0 = time.time()
     proc = run_cli(["task=certify", *args], tmp_path)
     assert time.time() - t0 < 30 and proc.returncode == 2 and "Traceback" not in proc.stderr

@@ -1,4 +1,4 @@
-"""``task=gather``: runs made in another store (a lent GPU's) join this one and fill the same
+"""``task=gather``: runs made in another store (a GPU machine's) join this one and fill the same
 table cells there as here, and the evidence page shows the paper profile's runs with the
 machine and time they took.
 
@@ -27,7 +27,7 @@ CHEAP = ("task.n=200", "task.skip=3")  # a short certification: every cell of th
 
 @pytest.fixture(scope="module")
 def gpu_store(tmp_path_factory):
-    """A store as a GPU session leaves it: a paper-profile train run and its certification."""
+    """A GPU machine's store: a paper-profile train run and its certification."""
     out = tmp_path_factory.mktemp("gpu")
     run(out, [*PAPER, "task=train"], "train")
     run(out, [*PAPER, "task=certify", "task.batch_size=64", *CHEAP], "certify")
@@ -44,17 +44,18 @@ def gather(into: Path, source: Path) -> dict:
 
 
 def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_store):
-    text = " ".join(" ".join(results_page.paper_profile_section(index(gpu_store))).split())
+    section = results_page.paper_profile_section(index(gpu_store))
+    table, times = (" ".join(section[k].split()) for k in ("table", "times"))
     clog = read_log(next((gpu_store / "runs" / "certify").glob("certify.tsv")), ["idx"])
     certified = ((clog.correct == 1) & (clog.radius >= 0.1) & (clog.predict >= 0)).mean()
     # One row per model (the paper has no small CNN, so no value of its own beside it).
-    assert text.count("| Tz | Smoothed Vanilla SmallCNN |") == 1
-    assert f"| Tz | Smoothed Vanilla SmallCNN | | | {certified:.3f} |" in text
-    assert f"n = 200, alpha = 0.01) over {len(clog)} test images" in text
-    assert f"| certify | 1 | {len(clog)} |" in text and f"| {machine()} (1 run) |" in text
-    assert "| train | 1 |" in text and "| smooth |" not in text  # stages that did not run are left out
+    assert table.count("| Tz | Smoothed Vanilla SmallCNN |") == 1
+    assert f"| Tz | Smoothed Vanilla SmallCNN | | | {certified:.3f} |" in table
+    assert (section["n"], section["alpha"], section["images"]) == (200, 0.01, len(clog))
+    assert f"| certify | 1 | {len(clog)} |" in times and f"| {machine()} (1 run) |" in times
+    assert "| train | 1 |" in times and "| smooth |" not in times  # stages that did not run are left out
     # A store without paper-profile runs gets no section.
-    assert results_page.paper_profile_section(index(gpu_store.parent / "nothing-here")) == []
+    assert results_page.paper_profile_section(index(gpu_store.parent / "nothing-here")) is None
 
 
 def runs_of(out: Path) -> tuple[mlflow.MlflowClient, dict]:

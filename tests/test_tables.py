@@ -5,6 +5,7 @@ tz) made with the tiny data settings; the tables are built from the demo experim
 same settings as every cell's overrides.
 """
 
+import re
 from pathlib import Path
 
 import mlflow
@@ -230,10 +231,13 @@ def tables_run(store):
 def test_tables_task_writes_every_table_its_sources_and_the_figure(store, tables_run):
     result = tables_run
     out = Path(result["tables"])
-    for name in ("table3_certified", "table1_augmented", "appendix_vanilla", "appendix_5_vs_100", "tabletop", "sweep"):
+    for name in ("table3_certified", "table1_augmented", "appendix_vanilla", "appendix_5_vs_100", "sweep"):
         for suffix in (".md", ".tex", ".csv"):
             assert (out / f"{name}{suffix}").is_file() and (out / f"{name}_sources{suffix}").is_file()
+    # The demo's runs are of the MetaRoom: no table about the tabletop is written from them.
+    assert not list(out.glob("tabletop*")) and "tabletop_filled_cells" not in result
     assert (out / "certified_accuracy_vs_radius.png").is_file() and (out / "certified_accuracy_vs_radius.pdf").is_file()
+    assert (out / "method_overview.png").is_file()  # from the filled certify cell
     assert result["table3_certified_filled_cells"] == 3  # the vanilla model's three cells
     sources = pd.read_csv(out / "table3_certified_sources.csv", keep_default_na=False)
     filled = sources[sources.runs != ""]
@@ -289,6 +293,43 @@ def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
     assert f"| {machine()} (1 run) |" in page
 
 
+def page_table(page: str, heading: str) -> pd.DataFrame:
+    """The first Markdown table after ``heading`` on a page, cells as text."""
+    lines = page.split(heading, 1)[1].splitlines()
+    end = next(i for i, x in enumerate(lines) if x.startswith("## "))
+    rows = [line for line in lines[:end] if line.startswith("|")]
+    cells = [[c.strip() for c in line.strip("|").split("|")] for line in rows]
+    return pd.DataFrame(cells[2:], columns=cells[0])
+
+
+def page_of(store: Path, name: str, extra: list[str]) -> bytes:
+    quoted = ",".join(f"'{o}'" for o in [*SETTINGS, *extra])
+    overrides = ["task=tables", "task.experiment=demo", f"task.overrides=[{quoted}]", f"task.page={store}/{name}/r.md"]
+    run_task(compose_cfg(overrides, store), store / "runs" / f"tables-{name}")
+    return (store / name / "r.md").read_bytes()
+
+
+def test_the_evidence_page_follows_the_configs_n_and_k_and_regenerates_byte_identical(store):
+    """The same runs give the same page, byte for byte; runs made with another n (CERTIFY,
+    PREDICT, the attack's PREDICT) and another attack K give a page that states those and no
+    other: no setting on it is written into the code."""
+    changed = ["task.n=40", "attack.k=3"]
+    for task in TASKS:
+        run(store, [*DEMO, f"task={task}", "model.variant=vanilla", "task.batch_size=64", *changed], f"{task}-n40")
+    first, again = page_of(store, "p1", changed), page_of(store, "p1", changed)  # written again in place
+    assert first == again
+    page = first.decode()
+    alog = read_log(next((store / "runs" / "attack-n40").glob("attack.tsv")), ["idx"])
+    table3 = page_table(page, "## Table 3")
+    row = table3[table3.Model == "Smoothed Vanilla SmallCNN"].iloc[0]
+    assert set(alog.k) == {3} and row["3-pert Emp. Acc"] == f"{alog.smoothed_robust.mean():.3f}"  # paper: no K = 3
+    numbers = re.findall(r"\bn = (\d+)", page)
+    assert numbers and set(numbers) == {"40"}, numbers  # CERTIFY's n, PREDICT's n, the attack's n
+    assert not re.search(r"\b5[- ](pert|uniform)", page) and "3 uniform perturbations" in page
+    default = page_of(store, "p3", []).decode()
+    assert set(re.findall(r"\bn = (\d+)", default)) == {"1000", "100"} and "| 5-pert Emp. Acc " in default
+
+
 def test_findings_count_what_the_logs_hold():
     """The page's findings on hand-made logs whose answers are known: of 4 test images, 0, 1 and 2
     are certified at r (3 has a larger radius but a wrong prediction); the attack ran on 0, 2 and
@@ -311,10 +352,10 @@ def test_findings_count_what_the_logs_hold():
         log=lambda cell: {"certify": clog, "attack": alog}.get(cell.runs[0]["run_id"]),
     )
     found = findings(SimpleNamespace(index=index), [Job("tz", "vanilla", "small_cnn", *cells.values())])
-    assert "holds in 0 of 1 (same images, same motions) -- smoothed vs base: Tz vanilla 0.333 vs 1.000" in found[1]
-    assert "holds in 0 of 1 on the attacked images -- certified vs 5-perturbed: Tz vanilla 0.667 vs 0.333" in found[2]
-    assert "Of the certified images, 1 failed the attack: 1 by a PREDICT abstention" in found[2]
-    assert "and 0 by another class" in found[2]
+    assert found["smoothed"] == {"holds": 0, "total": 1, "rows": ["Tz vanilla 0.333 vs 1.000"]}
+    assert found["certified"] == {"holds": 0, "total": 1, "rows": ["Tz vanilla 0.667 vs 0.333"]}
+    assert (found["broken"], found["abstained"], found["wrong"]) == (1, 1, 0)
+    assert (found["k"], found["attack_n"], found["alpha"]) == (cfg.attack.k, cfg.task.n, cfg.task.alpha)
 
 
 def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
@@ -350,9 +391,9 @@ def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
     assert len(fig.axes[0].lines) >= 2 and len(fig.axes[1].lines) == len(fig.axes[2].lines) == 2
 
 
-def test_the_learning_curve_table_and_the_why_sentence_follow_the_numbers():
+def test_the_learning_curve_table_and_its_summary_follow_the_numbers():
     from mrcert.reporting import learning_curve
-    from mrcert.reporting.results_page import why
+    from mrcert.reporting.results_page import curve_summary
 
     models = pd.DataFrame({"validation accuracy": [1.0, 0.975], "test accuracy": [0.817, 0.867]})
     curve = pd.DataFrame(
@@ -370,10 +411,12 @@ def test_the_learning_curve_table_and_the_why_sentence_follow_the_numbers():
     assert table.loc[("every", 40), "seeds"] == 3 and table.loc[("every", 40), "test accuracy (median)"] == 0.25
     assert table.loc[("every", 500), "test accuracy (median)"] == 0.85  # median of two seeds
     assert table.loc[("every", 40), "test accuracy (min-max)"] == "0.200-0.300"
-    text = why(models, curve)
-    assert "0.97 to 1.00 on the validation poses and 0.82 to 0.87 on the test images" in text
-    assert "0.25 with 40 training poses per class and 0.85 with 500 (under `any`: 0.95 with 500)" in text
-    assert "more training poses help, but with 500 per class the base classifier is still far" in text
+    summary = curve_summary(models, curve)
+    assert summary["models"] == {"val": (0.975, 1.0), "test": (0.817, 0.867)}
+    assert summary["archs"] == [
+        {"name": "SmallCNN", "fewest": 40, "most": 500, "fewest_acc": 0.25, "most_acc": pytest.approx(0.85),
+         "any": {"poses": 500, "acc": 0.95}}
+    ]  # fmt: skip
     resnet = pd.DataFrame(
         {
             "separation rule": ["every"] * 2,
@@ -384,16 +427,11 @@ def test_the_learning_curve_table_and_the_why_sentence_follow_the_numbers():
             "test accuracy": [0.05, 0.4],
         }
     )
-    both = why(models, pd.concat([curve, resnet], ignore_index=True))  # each architecture's own medians
-    assert "0.25 with 40 training poses per class and 0.85 with 500 (under `any`: 0.95 with 500)" in both
-    assert (
-        "Under `every` the median test accuracy of ResNet-18 is 0.05 with 40 training poses per class and 0.40 "
-        "with 500: more training poses help, but with 500 per class the base classifier is still far" in both
-    )
-    curve.loc[(curve["training poses per class"] == 500) & (curve["separation rule"] == "every"), "test accuracy"] = 0.9
-    assert "with 500 per class the base classifier performs normally on the test views" in why(models, curve)
-    curve.loc[curve["training poses per class"] == 500, "test accuracy"] = 0.3
-    assert "the number of training poses alone does not" in why(models, curve)
+    both = curve_summary(models, pd.concat([curve, resnet], ignore_index=True))  # each architecture's own medians
+    assert [(a["name"], a["fewest_acc"], a["most_acc"], a["any"]) for a in both["archs"]] == [
+        ("SmallCNN", 0.25, pytest.approx(0.85), {"poses": 500, "acc": 0.95}),
+        ("ResNet-18", 0.05, 0.4, None),
+    ]
 
 
 def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_expect(store):
@@ -420,7 +458,7 @@ def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_e
     experiment = client.get_experiment(runs["certify/vanilla"].info.experiment_id)
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
     link = ui_link_for(str(store), "http://127.0.0.1:5000")
-    assert link == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs?viewStateShareKey=mrcert"
+    assert link == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=mrcert"
 
 
 def test_progress_is_a_log_line_every_few_seconds_when_nobody_watches(caplog):

@@ -27,11 +27,11 @@ from mrcert.scenes import metaroom, tabletop
 
 @dataclass(frozen=True)
 class Family:
-    """A synthetic scene family: its classes, the scene around the object, the object, and how
-    high a camera may go (None: no ceiling)."""
+    """A synthetic scene family: its classes, the scene around the object (named parts), the
+    object, and how high a camera may go (None: no ceiling)."""
 
     classes: tuple[str, ...]
-    background: Callable[[DictConfig], list[tuple[np.ndarray, np.ndarray]]]
+    background: Callable[[DictConfig], dict[str, tuple[np.ndarray, np.ndarray]]]
     object: Callable[[str, float], tuple[np.ndarray, np.ndarray]]
     max_camera_z: float | None
 
@@ -39,12 +39,12 @@ class Family:
 FAMILIES = {
     "metaroom_synth": Family(
         tuple(metaroom.CLASSES),
-        lambda d: [metaroom.room(d.room_density, d.seed), metaroom.table(d.density)],
+        lambda d: {"room": metaroom.room(d.room_density, d.seed), "table": metaroom.table(d.density)},
         metaroom.object_cloud,
         metaroom.CEILING_Z - 0.05,  # cameras stay 5 cm below the ceiling
     ),
     "tabletop_synth": Family(
-        tuple(tabletop.CLASSES), lambda d: [tabletop.table(d.room_density)], tabletop.shape_cloud, None
+        tuple(tabletop.CLASSES), lambda d: {"table": tabletop.table(d.room_density)}, tabletop.shape_cloud, None
     ),
 }
 
@@ -72,10 +72,30 @@ class SyntheticSource:
 
     # --- scenes -----------------------------------------------------------------------------
     @cached_property
+    def parts(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The scene around the object, by part (``room``, ``table``): (points, colours), world frame."""
+        return self.family.background(self.data)
+
+    @cached_property
     def background(self) -> tuple[np.ndarray, np.ndarray]:
         """Everything but the object: (points, colours) in the world frame."""
-        parts = self.family.background(self.data)
-        return np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
+        return self.only(tuple(self.parts))
+
+    def only(self, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """The named ``parts`` of the scene around the object, concatenated (possibly none)."""
+        unknown = [p for p in parts if p not in self.parts]
+        if unknown:
+            raise MrcertError(f"{self.data.name} has no scene part {unknown}; its parts: {', '.join(self.parts)}")
+        chosen = [self.parts[p] for p in parts]
+        if not chosen:
+            return np.empty((0, 3)), np.empty((0, 3), np.float32)
+        return np.concatenate([p for p, _ in chosen]), np.concatenate([c for _, c in chosen])
+
+    def scene(self, label: int, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Class ``label``'s object with only the named ``parts`` around it (world frame)."""
+        bp, bc = self.only(parts)
+        op, oc = self.object(label)
+        return np.concatenate([bp, op]), np.concatenate([bc, oc])
 
     def object(self, label: int) -> tuple[np.ndarray, np.ndarray]:
         return self.family.object(self.classes[label], self.data.density)
@@ -138,13 +158,16 @@ class SyntheticSource:
             raise ValueError(f"{self.data.name} has no {name!r} split")
         make = self._train_set if name == "train" else lambda label: self._held_out_set(name, label)
         sets = [(label, make(label)) for label in range(len(self.classes))]
-        offset = float(self.data.protocol.get("yaw_offset", 0.0))
         params = np.concatenate([s.params for _, s in sets])
-        shifted = params.copy()
-        shifted[:, 0] += offset
-        poses = PoseSet(shifted, self._target()).poses
         labels = np.concatenate([np.full(len(s), label) for label, s in sets]).astype(np.int64)
-        return Split(poses, params, labels)
+        return Split(self.poses(params), params, labels)
+
+    def poses(self, params: np.ndarray) -> np.ndarray:
+        """Camera-to-world poses (N, 4, 4) of protocol parameters (N, 4: yaw, pitch, roll in
+        degrees, radius in metres), the protocol's ``yaw_offset`` added to each yaw."""
+        shifted = np.array(params, np.float64)
+        shifted[:, 0] += float(self.data.protocol.get("yaw_offset", 0.0))
+        return PoseSet(shifted, self._target()).poses
 
 
 class SyntheticData(PosedCloudData):

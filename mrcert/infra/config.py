@@ -64,6 +64,7 @@ def _axis(v: Any) -> bool:
     return isinstance(v, str) and all(a in AXES for a in v.split("+"))
 
 
+_ANGLES = "a non-empty list of finite angles in degrees"
 RULES: dict[str, Rule] = {
     # Rules by the last component of a key, so that every group's keys of that name obey them.
     "sigma": (_positive, "a finite number > 0"),
@@ -115,6 +116,18 @@ RULES: dict[str, Rule] = {
     "sigmas": (
         lambda v: isinstance(v, list) and len(v) > 0 and all(_positive(x) for x in v),
         "a non-empty list of finite numbers > 0",
+    ),
+    "pitches": (
+        lambda v: isinstance(v, list) and len(v) > 0 and all(_number(x) and -90 < x < 90 for x in v),
+        "a non-empty list of angles in degrees strictly between -90 and 90",
+    ),
+    "rolls": (lambda v: isinstance(v, list) and len(v) > 0 and all(_number(x) for x in v), _ANGLES),
+    "yaws": (lambda v: v is None or isinstance(v, list) and len(v) > 0 and all(_number(x) for x in v), _ANGLES),
+    "distance": (lambda v: v is None or _positive(v), "a finite number > 0 (metres), or null"),
+    "occlusion_patch": (_positive_int, "an integer >= 1 (pixels)"),
+    "surroundings": (
+        lambda v: isinstance(v, list) and all(x in ("room", "table") for x in v),
+        "a list of scene parts from room, table (or [] for the object alone)",
     ),
 }
 TASK_BATCH_RULE: Rule = (

@@ -108,6 +108,19 @@ class Gather:
     source: str = MISSING
 
 
+@dataclass
+class Viewpoints:
+    name: str = MISSING
+    pitches: list[float] = MISSING
+    rolls: list[float] = MISSING
+    yaws: list[float] | None = None
+    distance: float | None = None
+    surroundings: list[str] = MISSING
+    batch_size: Any = MISSING  # an integer >= 1 or auto: checked by validate
+    occlusion: bool = MISSING
+    occlusion_patch: int = MISSING
+
+
 # --- data --------------------------------------------------------------------------------
 @dataclass
 class Camera:
@@ -270,6 +283,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
         "tables": Tables,
         "import": Import,
         "gather": Gather,
+        "viewpoints": Viewpoints,
     },
     "data": {"scene": Scene, "synthetic": Synthetic, "released": Released, "custom": Custom, "camera": Camera},
     "motion": {"single": Motion, "multi": MultiAxisMotion},

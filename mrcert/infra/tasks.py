@@ -172,6 +172,19 @@ TASKS: dict[str, Task] = {
         headline=("smoothed_robust_accuracy", "base_benign_accuracy"),
         title=_model_title,
     ),
+    "viewpoints": Task(
+        "mrcert.tasks.viewpoints:run",
+        "a base classifier's accuracy by camera pitch and roll (synthetic scenes)",
+        # The base classifier alone, identified by its checkpoint's content: no smoothing, no motion.
+        Identity(
+            defines=("task", "data", "model", "seed", "profile"),
+            ignores=("train", "attack", "motion", "method", "task.batch_size"),
+            files=("model.checkpoint", *DATA_FILES),
+            needs_model=True,
+        ),
+        headline=("accuracy",),
+        title=lambda cfg: f"viewpoints {cfg.model.variant} {cfg.model.arch}",
+    ),
     "tables": Task(
         "mrcert.tasks.tables:run",
         "the paper's tables and figure from finished MLflow runs",

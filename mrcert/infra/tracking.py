@@ -158,9 +158,16 @@ def _untag_parents(mlflow, experiment_id: str) -> None:
         client.delete_tag(run.info.run_id, RUNS_VIEW_GROUP)
 
 
+UI_WORKFLOW = "machine_learning"
+"""MLflow 3's UI shows an experiment as GenAI work (traces, judges, prompts in its sidebar) unless
+the page is asked for its model-training view (``workflowType``): the link asks for it."""
+
+
 def ui_link(tracking: DictConfig, base: str) -> str:
-    """The MLflow UI page of the experiment's runs, in mrcert's view (``base``: where the UI is served)."""
-    return f"{base.rstrip('/')}/#/experiments/{ensure_experiment(tracking)}/runs?viewStateShareKey={RUNS_VIEW}"
+    """The MLflow UI page of the experiment's runs, in its model-training view and mrcert's view
+    of the runs (``base``: where the UI is served)."""
+    query = f"workflowType={UI_WORKFLOW}&viewStateShareKey={RUNS_VIEW}"
+    return f"{base.rstrip('/')}/#/experiments/{ensure_experiment(tracking)}/runs?{query}"
 
 
 def ui_link_for(outputs: str, base: str, experiment: str = "mrcert") -> str:

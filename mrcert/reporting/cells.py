@@ -13,6 +13,7 @@ recomputed from its (merged) per-image logs by the task's own ``summarize``.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import bind_checkpoint
 from mrcert.infra.config import CONF_DIR
 from mrcert.infra.identity import identify
+from mrcert.infra.schema import SCHEMAS
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting import certify_log
 
@@ -35,8 +37,20 @@ KEY, CELL = "tags.mrcert.key", "tags.mrcert.cell"
 
 def compose_config(overrides: Iterable[str]) -> DictConfig:
     """The config that ``mrcert OVERRIDES`` would run (with its ``hydra`` node); a copy of the
-    one composed the first time, since the tables compose the same cells over and over."""
-    return copy.deepcopy(_composed(tuple(overrides)))
+    one composed the first time, since the tables compose the same cells over and over. An
+    override of a ``task.*`` key that the cell's task does not have (``task.n`` given for every
+    cell of a table, composed for a train run) applies only to the tasks that have it."""
+    return copy.deepcopy(_composed(own_task_keys(tuple(overrides))))
+
+
+def own_task_keys(overrides: tuple[str, ...]) -> tuple[str, ...]:
+    """``overrides`` without the ``task.<key>=...`` ones whose key the named task's schema lacks."""
+    names = [o.split("=", 1)[1] for o in overrides if o.startswith("task=")]
+    schema = SCHEMAS["task"].get(names[-1]) if names else None
+    if schema is None:
+        return overrides
+    keys = {f.name for f in dataclasses.fields(schema)}
+    return tuple(o for o in overrides if not o.startswith("task.") or o[5:].split("=", 1)[0].split(".")[0] in keys)
 
 
 @functools.cache

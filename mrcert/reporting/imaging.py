@@ -12,7 +12,7 @@ from PIL import Image
 from mrcert.core.projection import to_uint8
 
 
-def _pil_array(image: torch.Tensor) -> np.ndarray:
+def pil_array(image: torch.Tensor) -> np.ndarray:
     """One (C, H, W) image as PIL wants it: (H, W, C) uint8, or (H, W) for grey."""
     arr = to_uint8(image)
     return arr[..., 0] if arr.shape[2] == 1 else arr
@@ -20,7 +20,7 @@ def _pil_array(image: torch.Tensor) -> np.ndarray:
 
 def save_png(image: torch.Tensor, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(_pil_array(image)).save(path)
+    Image.fromarray(pil_array(image)).save(path)
     return path
 
 
@@ -49,7 +49,7 @@ def contact_sheet(
             ax.set_xticks([])
             ax.set_yticks([])
             if c < len(images[r]):
-                ax.imshow(_pil_array(images[r][c]), interpolation="nearest")
+                ax.imshow(pil_array(images[r][c]), interpolation="nearest")
                 ax.set_xlabel(col_labels[r][c], fontsize=7)
             else:
                 ax.axis("off")

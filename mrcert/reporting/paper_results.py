@@ -6,6 +6,11 @@ from __future__ import annotations
 
 AXES_ORDER = ("tz", "tx", "ty", "rz", "rx", "ry")
 
+# The paper's MetaRoom experiment: its data set, training poses per class and test images.
+DATASET = "MetaRoom"
+TRAIN_POSES = 500
+TEST_IMAGES = 120
+
 # Table 3: smoothed models' benign accuracy, 5-perturbed empirical robust accuracy, certified accuracy.
 _T3 = {  # axis: [(benign, 5-pert, certified) for V-R18, A-R18, V-R50, A-R50]
     "tz": [(0.858, 0.817, 0.792), (0.842, 0.833, 0.817), (0.675, 0.617, 0.558), (0.867, 0.850, 0.817)],
@@ -61,6 +66,14 @@ _T1 = {  # axis: {(arch, variant): (base benign, base 100-pert, smoothed 100-per
     },
 }
 BASE_BENIGN = {(a, *m): v[0] for a, d in _T1.items() for m, v in d.items()}
+
+
+def base_benign_range(arch: str) -> tuple[float, float]:
+    """The lowest and highest test accuracy of the paper's base models of ``arch`` (Table 1 and
+    its appendix twin): what "performs normally on the test set" means in the paper."""
+    values = [v for (_, a, _), v in BASE_BENIGN.items() if a == arch]
+    return min(values), max(values)
+
 BASE_PERTURBED_100 = {(a, *m): v[1] for a, d in _T1.items() for m, v in d.items()}
 SMOOTHED_PERTURBED_100 = {(a, *m): v[2] for a, d in _T1.items() for m, v in d.items()}
 

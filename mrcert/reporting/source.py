@@ -57,10 +57,16 @@ class Source:
     axes: tuple[str, ...] | None = None
     certify_task: str = "certify"
     link: str = "{run_id}"
+    parent: str | None = None  # the sweep table from one sweep's children (a parent run id)
     provenance: list[dict] = field(default_factory=list)
 
     def experiment_for(self, own: str) -> str:
         return self.experiment or own
+
+    def data_of(self, own: str) -> str:
+        """The data set the cells of a table whose own experiment is ``own`` are composed on."""
+        cell = (f"experiment={self.experiment_for(own)}", f"profile={self.profile}", "task=certify", *self.overrides)
+        return str(compose_config(cell).data.name)
 
     def cell(self, experiment: str, combo: tuple[str, ...], measure: Measure) -> Cell:
         task = self.certify_task if measure.task == "certify" else measure.task

@@ -12,6 +12,9 @@ filled each cell (``<table>_sources.csv``/``.md``: run ids and MLflow links). Wi
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 import pandas as pd
 
@@ -85,9 +88,11 @@ def certified_table(
     row's own architecture; an architecture the paper did not evaluate, e.g. the small CNN, is
     compared with one it did only when asked)."""
     exp = src.experiment_for("table3")
+    jobs = list(src.rows(exp, SMOOTHED_BENIGN))
+    k = int(jobs[0][1].cfg.attack.k) if jobs else 5  # the experiment's attack: the paper's Table 3 has K = 5
     columns = (
         ("Benign Acc", SMOOTHED_BENIGN, ("smoothed", "benign", None)),
-        ("5-pert Emp. Acc", robust("smoothed", 5), ("smoothed", "perturbed", 5)),
+        (f"{k}-pert Emp. Acc", robust("smoothed", k), ("smoothed", "perturbed", k)),
         ("Certified Acc", CERTIFIED, ("certified",)),
     ) + (
         (  # columns the paper does not have, each with its printed format
@@ -100,7 +105,7 @@ def certified_table(
         else ()
     )
     rows = {}
-    for combo, first in src.rows(exp, SMOOTHED_BENIGN):
+    for combo, first in jobs:
         ax, a, v = _axis(first), first.cfg.model.arch, first.cfg.model.variant
         key = (AXIS_NAMES.get(ax, ax), model_label(a, v))
         theirs = paper_arch or a
@@ -235,6 +240,76 @@ def sweep_table(src: Source, parent: str | None = None, name: str = "sweep") -> 
     wide = pd.DataFrame(rows).pivot_table(index=["Axis", "sigma", "Model"], columns="radius", values="Certified Acc")
     wide.columns = [f"r={c:.4g}" for c in wide.columns]
     return wide
+
+
+@dataclass(frozen=True)
+class Table:
+    """One of the paper's tables, declared once: its file name, caption, the experiment whose
+    runs fill it by default, the data sets it is about (a cell never shows a run of another),
+    and how it is built from a :class:`Source` (``show_paper``: the paper's values beside ours)."""
+
+    name: str
+    caption: str
+    experiment: str
+    data: tuple[str, ...] | None  # None: any data set (the sigma sweep)
+    build: Callable[[Source, bool], pd.DataFrame]
+
+    def about(self, data: str) -> bool:
+        return self.data is None or data in self.data
+
+
+METAROOM = ("metaroom_synth", "metaroom")  # the synthetic room and the released one
+TABLES = (
+    Table(
+        "table3_certified",
+        "Benign, K-perturbed empirical robust and certified accuracy of the smoothed models",
+        "table3",
+        METAROOM,
+        lambda src, paper: certified_table(src, paper),
+    ),
+    Table(
+        "table1_augmented",
+        "Base vs smoothed motion-augmented models: benign and 100-perturbed accuracy",
+        "table1",
+        METAROOM,
+        lambda src, paper: base_vs_smoothed_table(src, "augmented", 100, paper),
+    ),
+    Table(
+        "appendix_vanilla",
+        "Base vs smoothed vanilla models: benign and 100-perturbed accuracy",
+        "table1",
+        METAROOM,
+        lambda src, paper: base_vs_smoothed_table(src, "vanilla", 100, paper, name="appendix_vanilla"),
+    ),
+    Table(
+        "appendix_5_vs_100",
+        "Smoothed models: 5- vs 100-perturbed empirical robust accuracy",
+        "table3",
+        METAROOM,
+        lambda src, paper: perturbed_5_vs_100_table(src, paper),
+    ),
+    Table(
+        "tabletop",
+        "Tabletop: benign and 10-perturbed accuracy, base vs smoothed",
+        "tabletop",
+        ("tabletop_synth",),
+        lambda src, paper: tabletop_table(src, 10, paper),
+    ),
+    Table(
+        "sweep",
+        "Certified accuracy against smoothing sigma and radius",
+        "sweep",
+        None,
+        lambda src, paper: sweep_table(src, src.parent),
+    ),
+)
+
+
+def tables_for(src: Source) -> list[Table]:
+    """The tables whose cells ``src`` composes on a data set they are about: every table of the
+    paper when each reads its own experiment, only those about ``task.experiment``'s data set
+    when one experiment fills them all (``make demo``'s MetaRoom fills no tabletop table)."""
+    return [t for t in TABLES if t.about(src.data_of(t.experiment))]
 
 
 def curves_figure(data: dict[str, dict[str, Curve]]):

@@ -1,6 +1,6 @@
 """``task=gather``: the finished runs of another mrcert store copied into this one, so that its
 tables and evidence page read them beside this store's own. For runs made where no tracking
-server is shared: a lent GPU, a laptop, a cluster node with its own SQLite store.
+server is shared: a GPU machine, a laptop, a cluster node with its own SQLite store.
 
 Each FINISHED run of the source's experiment is copied once, whole: its name, start and end
 time, tags, params, every metric's history, logged data sets and artifacts (checkpoints, logs,

@@ -11,6 +11,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from mrcert.core.methods import build_method
+from mrcert.core.smoothing import image_generator
 from mrcert.data.protocols import differences
 from mrcert.data.sources import load
 from mrcert.data.synthetic import SyntheticData
@@ -19,6 +21,7 @@ from mrcert.infra.tracking import RunContext, configure, ensure_experiment
 from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.imaging import contact_sheet
+from mrcert.reporting.overview import method_figure
 from mrcert.reporting.plots import save
 from mrcert.reporting.results_page import PAPER_ARCH, base_models, jobs_of, write_page
 from mrcert.reporting.source import Source
@@ -44,34 +47,14 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         archs=tuple(t.archs) if t.archs else None,
         axes=tuple(t.axes) if t.axes else None,
         certify_task=SOURCES[t.source],
+        parent=t.parent,
         link=f"{str(t.ui_url).rstrip('/')}/#/experiments/{experiment_id}/runs/{{run_id}}",
     )
     paper = bool(t.show_paper)
-    built = {
-        "table3_certified": (
-            tables.certified_table(src, paper),
-            "Benign, 5-perturbed empirical robust and certified accuracy of the smoothed models",
-        ),
-        "table1_augmented": (
-            tables.base_vs_smoothed_table(src, "augmented", 100, paper),
-            "Base vs smoothed motion-augmented models: benign and 100-perturbed accuracy",
-        ),
-        "appendix_vanilla": (
-            tables.base_vs_smoothed_table(src, "vanilla", 100, paper, name="appendix_vanilla"),
-            "Base vs smoothed vanilla models: benign and 100-perturbed accuracy",
-        ),
-        "appendix_5_vs_100": (
-            tables.perturbed_5_vs_100_table(src, paper),
-            "Smoothed models: 5- vs 100-perturbed empirical robust accuracy",
-        ),
-        "tabletop": (
-            tables.tabletop_table(src, 10, paper),
-            "Tabletop: benign and 10-perturbed accuracy, base vs smoothed",
-        ),
-        "sweep": (tables.sweep_table(src, t.parent), "Certified accuracy against smoothing sigma and radius"),
-    }
-    if t.print not in built:
-        raise MrcertError(f"task.print={t.print!r} is not allowed: one of {', '.join(built)}")
+    built = {table.name: (table.build(src, paper), table.caption) for table in tables.tables_for(src)}
+    if t.print not in {table.name for table in tables.TABLES}:
+        names = ", ".join(table.name for table in tables.TABLES)
+        raise MrcertError(f"task.print={t.print!r} is not allowed: one of {names}")
     out = Path(t.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     metrics: dict[str, float] = {}
@@ -90,6 +73,9 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     ctx.tracker.log_figure(fig, "tables/certified_accuracy_vs_radius.png")
     stem = out / "certified_accuracy_vs_radius"
     figure, _ = save(fig, [stem.with_suffix(".png"), stem.with_suffix(".pdf")])
+    overview = method_overview(src, out / "method_overview.png")
+    if overview is not None:
+        ctx.tracker.log_artifact(overview, "tables")
     if t.page:
         table = tables.certified_table(src, show_paper=True, name="page", sequential=True, paper_arch=PAPER_ARCH)
         command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
@@ -100,10 +86,13 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         ctx.tracker.log_artifact(page, "tables")
         print(f"\nEvidence page: {page.resolve()}")
     ctx.tracker.log_metrics(metrics)
-    shown = built[t.print][0]
-    print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
-    print(markdown(as_text(shown)))
-    models = base_models(src, jobs_of(src, src.experiment_for("table3"), 5))
+    if t.print in built:
+        print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
+        print(markdown(as_text(built[t.print][0])))
+    else:
+        own = next(table for table in tables.TABLES if table.name == t.print)
+        print(f"\n{t.print}: not written: it is about {', '.join(own.data)}, not {src.data_of(own.experiment)}")
+    models = base_models(src, jobs_of(src, src.experiment_for("table3")))
     if len(models):
         print("\nTheir base classifiers (validation accuracy selected best.pt; test accuracy measured once):\n")
         print(markdown(as_text(models)))
@@ -118,6 +107,27 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         f"MLflow: make ui  (or: mlflow ui --backend-store-uri {cfg.tracking.uri})"
     )
     return metrics | {"tables": str(out.resolve())}
+
+
+def method_overview(src: Source, path: Path) -> Path | None:
+    """The method in one picture (:func:`mrcert.reporting.overview.method_figure`) from the
+    first filled certify cell of Table 3's rows, on its first correctly classified test image;
+    None when no certify cell is filled."""
+    for _, cell in src.rows(src.experiment_for("table3"), tables.CERTIFIED):
+        log = src.index.log(cell)
+        if log is not None and len(log):
+            right = log[log["correct"] == 1]
+            index = int((right if len(right) else log)["idx"].iloc[0])
+            cfg = cell.cfg
+            method = build_method(cfg)
+            bundle = load(cfg.data)
+            sample = bundle.samples(crop=method.crop_bound(float(cfg.task.crop_sigmas)))[index]
+            # The run's own first selection samples of that image: its generator, its method.
+            render, motions = method.views(sample.renderer(), 8, image_generator(int(cfg.seed), index), None)
+            view = render(torch.zeros(1, 6, dtype=torch.float64))[0]
+            name = bundle.classes[int(sample.label)]
+            return method_figure(method, view, name, render(motions), motions, log, float(cfg.motion.radius), path)
+    return None
 
 
 def named_data() -> str | None:
