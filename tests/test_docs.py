@@ -73,11 +73,11 @@ def test_the_repository_describes_the_product_not_how_or_when_it_was_built():
 
 
 def test_the_development_vocabulary_check_catches_what_it_names(tmp_path):
-    caught = [
-        "measured on 2026-11-24 on a lent H100",
+    caught = [  # made-up examples of each kind the check names
+        "measured on 1999-12-31 on a borrowed laptop",
         "in a scratch copy of the code",
-        '"""Issue 20, item 4: no room for the store."""',
-        "the second session's run",
+        '"""Ticket 7: no room for the store."""',
+        "the second sitting's run",
         "in pieces, because the machine was replaced",
     ]
     kept = ["ResNet-18 from scratch, 20 classes", "one NVIDIA H100", "outputs/runs/<task>/<date>_<time>_<id>/"]

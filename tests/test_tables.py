@@ -209,7 +209,7 @@ def test_sweep_table_from_a_parents_children(store):
     (parent,) = mlflow.search_runs(
         search_all_experiments=True, filter_string="tags.`mrcert.multirun` = 'parent'", output_format="list"
     )
-    sweep = tables.sweep_table(source(store), parent.info.run_id)
+    sweep = tables.sweep_table(source(store, parent=parent.info.run_id))
     assert [idx[:2] for idx in sweep.index] == [("tz", 0.05), ("tz", 0.1)]
     assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0.2"] == pytest.approx(0.4)
     assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0"] == pytest.approx(0.6)

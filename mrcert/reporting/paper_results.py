@@ -66,6 +66,8 @@ _T1 = {  # axis: {(arch, variant): (base benign, base 100-pert, smoothed 100-per
     },
 }
 BASE_BENIGN = {(a, *m): v[0] for a, d in _T1.items() for m, v in d.items()}
+BASE_PERTURBED_100 = {(a, *m): v[1] for a, d in _T1.items() for m, v in d.items()}
+SMOOTHED_PERTURBED_100 = {(a, *m): v[2] for a, d in _T1.items() for m, v in d.items()}
 
 
 def base_benign_range(arch: str) -> tuple[float, float]:
@@ -74,8 +76,6 @@ def base_benign_range(arch: str) -> tuple[float, float]:
     values = [v for (_, a, _), v in BASE_BENIGN.items() if a == arch]
     return min(values), max(values)
 
-BASE_PERTURBED_100 = {(a, *m): v[1] for a, d in _T1.items() for m, v in d.items()}
-SMOOTHED_PERTURBED_100 = {(a, *m): v[2] for a, d in _T1.items() for m, v in d.items()}
 
 # Real robot (tabletop): benign accuracy (one value for both) and 10-perturbed, base / smoothed.
 TABLETOP_BENIGN = 0.833

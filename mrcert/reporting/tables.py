@@ -204,12 +204,12 @@ def tabletop_table(src: Source, k: int = 10, show_paper: bool = False, name: str
     return _frame(data, ["Who", "Model"]) if data else pd.DataFrame()
 
 
-def sweep_table(src: Source, parent: str | None = None, name: str = "sweep") -> pd.DataFrame:
+def sweep_table(src: Source, name: str = "sweep") -> pd.DataFrame:
     """Certified accuracy against sigma (rows) and radius (columns, each axis's grid
-    ``k * radius_step``): from the sweep experiment's certify cells, or, with ``parent`` (a
-    sweep's parent run id), from that sweep's children."""
-    if parent:
-        cells = src.index.children(parent)
+    ``k * radius_step``): from the sweep experiment's certify cells, or, with the source's
+    ``parent`` (a sweep's parent run id), from that sweep's children."""
+    if src.parent:
+        cells = src.index.children(src.parent)
     else:
         exp = src.experiment_for("sweep")
         cells = [cell for _, cell in src.rows(exp, CERTIFIED)]
@@ -300,7 +300,7 @@ TABLES = (
         "Certified accuracy against smoothing sigma and radius",
         "sweep",
         None,
-        lambda src, paper: sweep_table(src, src.parent),
+        lambda src, paper: sweep_table(src),
     ),
 )
 

@@ -115,31 +115,26 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     distance = float(t.distance) if t.distance is not None else float(np.median(test.params[:, 3]))
     cells = list(itertools.product([float(p) for p in t.pitches], [float(r) for r in t.rolls]))
     params = np.array([(y, p, r, distance) for p, r in cells for y in yaws], np.float64)
+    poses = bundle.source.poses(params)
+    firsts = [i * len(yaws) for i in range(len(cells))]  # each cell's first yaw
     batch = batch_size(t.batch_size, device)
     rows, sheet, maps = [], [], []
     for label in progress(range(len(bundle.classes)), "classes"):
-        images = render_poses(
-            bundle.source.scene(label, parts),
-            bundle.source.poses(params),
-            bundle.K,
-            bundle.height,
-            bundle.width,
-            bundle.background,
-        )
+        scene = bundle.source.scene(label, parts)
+        images = render_poses(scene, poses, bundle.K, bundle.height, bundle.width, bundle.background)
         predicted = classify(model, images, device, batch)
-        rows += [
+        own = [
             {"label": label, "yaw": y, "pitch": p, "roll": r, "predict": int(c), "correct": int(c == label)}
             for (y, p, r, _), c in zip(params, predicted, strict=True)
         ]
-        firsts = [i * len(yaws) for i in range(len(cells))]  # each cell's first yaw
         if label == 0:
             sheet = [images[i] for i in firsts]
         if t.occlusion:
-            masks = object_mask(bundle, label, bundle.source.poses(params[firsts]))
-            for i, mask in zip(firsts, masks, strict=True):
+            for i, mask in zip(firsts, object_mask(bundle, label, poses[firsts]), strict=True):
                 falls = occlusion(model, images[i], label, int(t.occlusion_patch), device, batch)
-                rows[len(rows) - len(params) + i]["object_share"] = object_share(falls, mask)
+                own[i]["object_share"] = object_share(falls, mask)
                 maps.append((label, params[i], images[i], falls))
+        rows += own
     log = pd.DataFrame(rows)
     log.to_csv(ctx.output_dir / "viewpoints.tsv", sep="\t", index=False)
     grid = log.pivot_table(index="pitch", columns="roll", values="correct", aggfunc="mean")
