@@ -16,7 +16,7 @@ THREADS ?= 2
 DEVICE ?= cpu
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo figures reproduce-tables results learning-curve side-by-side test test-full test-gpu bench ui server clean lint
+.PHONY: help install demo figures reproduce-tables learning-curve side-by-side test test-full test-gpu bench ui server clean lint
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -44,29 +44,30 @@ figures: $(STAMP) ## the README's pictures from a fresh demo store: the method o
 	cp $(FIGURES)/tables/method_overview.png docs/method_overview.png
 	$(PY) -m mrcert.reporting.screenshot $(FIGURES) docs/mlflow_runs.png
 
-reproduce-tables: $(STAMP) ## the paper's tables (PROFILE=quick|paper); finished work is skipped
-	for e in table3 table1 tabletop; do $(MRCERT) -m experiment=$$e profile=$(PROFILE) task=train || exit 1; done
-	$(MRCERT) -m experiment=table3 profile=$(PROFILE) task=certify,smooth,attack
-	$(MRCERT) -m experiment=table1 profile=$(PROFILE) task=smooth,attack
+# The reproduction's experiment (conf/experiment/reproduce_<profile>.yaml) and its evidence page.
+REPRODUCTION = reproduce_$(PROFILE)
+PAGE ?= docs/results.md
+PAGE_TABLES = $(MRCERT) -m task=tables profile=$(PROFILE) task.show_paper=true task.page=$(PAGE)
+
+reproduce-tables: $(STAMP) ## every table and figure of the paper and the evidence page (PROFILE=quick: 2 CPU cores; paper: a GPU); finished work is skipped
+	$(MRCERT) -m experiment=$(REPRODUCTION) task=train
+	$(MRCERT) -m experiment=tabletop profile=$(PROFILE) task=train
+	$(MRCERT) -m experiment=$(REPRODUCTION) task=certify,smooth
+	$(MRCERT) -m experiment=$(REPRODUCTION) task=attack attack.k=5,100
+	$(MRCERT) -m experiment=$(REPRODUCTION) task=certify task.sequential=true
 	$(MRCERT) -m experiment=tabletop profile=$(PROFILE) task=smooth,attack
-	$(MRCERT) -m task=tables profile=$(PROFILE) task.show_paper=true
+	$(PAGE_TABLES)
 
-results: $(STAMP) ## the evidence page docs/results.md: the quick model, six axes, all 120 test images (hours on 2 CPU cores)
-	$(MRCERT) -m experiment=results task=train
-	$(MRCERT) -m experiment=results task=certify,smooth,attack
-	$(MRCERT) -m experiment=results task=certify task.sequential=true
-	$(MAKE) learning-curve
-	$(MAKE) side-by-side
-	$(MRCERT) -m task=tables task.experiment=results task.page=docs/results.md
-
-side-by-side: $(STAMP) ## pixel-wise smoothing beside camera motion smoothing (docs/results.md; after make results' certify stage)
+side-by-side: $(STAMP) ## pixel-wise smoothing beside camera motion smoothing (docs/results.md; after make reproduce-tables' certify stage)
 	$(MRCERT) -m experiment=side_by_side task=train
 	$(MRCERT) -m experiment=side_by_side task=certify
+	$(PAGE_TABLES)
 
 learning-curve: $(STAMP) ## the learning curve: test accuracy by training poses, separation rule, seed (small CNN, ResNet-18)
 	$(MRCERT) -m experiment=learning_curve task=train
 	$(MRCERT) -m experiment=learning_curve_any task=train
 	$(MRCERT) -m experiment=learning_curve_resnet18 task=train
+	$(PAGE_TABLES)
 
 test: $(STAMP) ## the fast test suite (< 10 min on 2 cores): one pytest worker per thread, test files shared out
 	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n $(THREADS) --dist loadfile

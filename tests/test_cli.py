@@ -74,20 +74,66 @@ def test_a_sweep_over_tasks_is_one_parent_holding_every_job(tmp_path):
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0_render", "1_tables"]
 
 
-def make_recipe(target: str) -> list[list[str]]:
+def make_recipe(target: str, *variables: str) -> list[list[str]]:
     """The mrcert commands of a Makefile target, as ``make -n`` prints them (arguments only)."""
     out = subprocess.run(
-        ["make", "-n", target, "MRCERT=:mrcert:", "STAMP="], cwd=ROOT, capture_output=True, text=True, check=True
+        ["make", "-n", target, "MRCERT=:mrcert:", "STAMP=", *variables],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout
     return [shlex.split(line)[1:] for line in out.splitlines() if line.startswith(":mrcert: ")]
 
 
 def test_make_learning_curve_trains_exactly_the_experiments_the_page_s_curve_reads():
-    """The evidence page's curve reads learning_curve.EXPERIMENTS; `make learning-curve` (and so
-    `make results`) must train each of them, in that order, and nothing else."""
+    """The evidence page's curve reads learning_curve.EXPERIMENTS; `make learning-curve` must
+    train each of them, in that order, and nothing else, then rewrite the page."""
     from mrcert.reporting.learning_curve import EXPERIMENTS
 
-    assert make_recipe("learning-curve") == [["-m", f"experiment={e}", "task=train"] for e in EXPERIMENTS]
+    *trains, page = make_recipe("learning-curve")
+    assert trains == [["-m", f"experiment={e}", "task=train"] for e in EXPERIMENTS]
+    assert "task=tables" in page and "task.page=docs/results.md" in page
+
+
+@pytest.mark.parametrize("profile,archs", [("quick", {"small_cnn"}), ("paper", {"resnet18", "resnet50"})])
+def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_metaroom_table(profile, archs):
+    """`make reproduce-tables PROFILE=p`: one MetaRoom experiment (the profile's, on its own
+    profile, with the profile's architectures: the small CNN on 2 CPU cores, the paper's ResNets
+    for a GPU) trained, certified, smoothed and attacked at K = 5 and 100, the tabletop experiment
+    beside it, and the tables and evidence page built from exactly those runs."""
+    from mrcert.reporting import tables
+    from mrcert.reporting.source import sweep_combos
+    from tests.conftest import compose_cfg
+
+    recipe = make_recipe("reproduce-tables", f"PROFILE={profile}")
+    experiments = {a.split("=", 1)[1] for c in recipe for a in c if a.startswith("experiment=")}
+    reproduction = tables.REPRODUCTION.format(profile=profile)
+    assert experiments == {reproduction, "tabletop"}
+    stages = {
+        (a, *sorted(x for x in c if x.startswith("attack.k") or x.startswith("task.sequential")))
+        for c in recipe
+        if f"experiment={reproduction}" in c
+        for a in c
+        if a.startswith("task=")
+    }
+    assert stages == {
+        ("task=train",),
+        ("task=certify,smooth",),
+        ("task=attack", "attack.k=5,100"),
+        ("task=certify", "task.sequential=true"),
+    }
+    cfgs = [compose_cfg([f"experiment={reproduction}", "task=train", *combo]) for combo in sweep_combos(reproduction)]
+    assert {c.model.arch for c in cfgs} == archs and {c.profile.name for c in cfgs} == {profile}
+    assert {c.data.name for c in cfgs} == {"metaroom_synth"} and {str(c.attack.k) for c in cfgs} == {"5"}
+    (page,) = [c for c in recipe if "task=tables" in c]
+    assert (
+        f"profile={profile}" in page
+        and "task.page=docs/results.md" in page
+        and not any(a.startswith("task.experiment=") for a in page)
+    )  # each table from its own experiment: the MetaRoom ones from the reproduction, tabletop from its own
+    own = {t.name: t.experiment.format(profile=profile) for t in tables.TABLES if t.data is not None}
+    assert set(own.values()) == {reproduction, "tabletop"}
 
 
 @pytest.mark.slow
@@ -116,7 +162,9 @@ def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs
     (group,) = json.loads(EXPERIMENT_TAGS["mlflow.sharedViewState.mrcert"])["groupBy"]["groupByKeys"]
     assert group["mode"] == "tag"
     assert {r.info.run_id for r in all_runs if group["groupByData"] not in r.data.tags} == parents
-    assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith("/runs?workflowType=machine_learning&viewStateShareKey=mrcert")
+    assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith(
+        "/runs?workflowType=machine_learning&viewStateShareKey=mrcert"
+    )
 
 
 def test_failing_job_marks_the_parent_failed_and_keeps_the_other_result(tmp_path):

@@ -94,8 +94,8 @@ def test_groups_the_issue_asks_for_exist():
 
 def test_the_learning_curve_reaches_the_training_poses_of_the_page_s_models():
     """The evidence page's curve must say what the data its Table 3 models train on gives: its sweep
-    covers experiment=results' training poses per class, on the same data and model."""
-    results = compose_cfg(["experiment=results"])
+    covers experiment=reproduce_quick's training poses per class, on the same data and model."""
+    results = compose_cfg(["experiment=reproduce_quick"])
     curve = compose_cfg(["experiment=learning_curve"])
     swept = str(curve.hydra.sweeper.params["data.protocol.train.per_class"]).split(",")
     assert str(results.data.protocol.train.per_class) in swept, (results.data.protocol.train.per_class, swept)
@@ -181,11 +181,10 @@ def test_bad_values_are_rejected_with_key_value_and_allowed(override, key, value
 
 EXPERIMENT_TASKS = {
     "demo": ("train", "certify", "smooth", "attack"),
-    "table3": ("train", "certify", "smooth", "attack"),
-    "table1": ("train", "smooth", "attack"),
+    "reproduce_paper": ("train", "certify", "smooth", "attack"),
     "tabletop": ("train", "smooth", "attack"),
     "sweep": ("certify",),
-    "results": ("train", "certify", "smooth", "attack"),
+    "reproduce_quick": ("train", "certify", "smooth", "attack"),
     "learning_curve": ("train",),
     "learning_curve_any": ("train",),
     "learning_curve_resnet18": ("train",),

@@ -21,7 +21,7 @@ from mrcert.tasks.gather import GATHERED
 from tests.conftest import run_cli
 from tests.test_tables import SETTINGS, run
 
-PAPER = ["experiment=table3", "profile=paper", *SETTINGS, "model.variant=vanilla", "motion=tz"]
+PAPER = ["experiment=reproduce_paper", "profile=paper", *SETTINGS, "model.variant=vanilla", "motion=tz"]
 CHEAP = ("task.n=200", "task.skip=3")  # a short certification: every cell of the tables gets these too
 
 
@@ -73,10 +73,10 @@ def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
     done = gather(page_store, moved)  # those two and the laptop's gather run
     assert (done["gathered"], done["without_artifacts"], done["kept_keys"]) == (3, 0, 0)
     there, here = index(gpu_store, "paper"), index(page_store, "paper")
-    ours = tables.certified_table(here, name="t")
-    assert ours.equals(tables.certified_table(there, name="t")) and ours.notna().any().any()
+    ours = tables.TABLE3.build(here, name="t")
+    assert ours.equals(tables.TABLE3.build(there, name="t")) and ours.notna().any().any()
     # The copy's certification names the copied model, which loads here.
-    cell = here.cell("table3", ("motion=tz", "model.variant=vanilla"), tables.CERTIFIED)
+    cell = here.cell("reproduce_paper", ("motion=tz", "model.variant=vanilla"), tables.CERTIFIED)
     train = cell.runs[0]["tags.mrcert.train_run"]
     assert cell.cfg.model.checkpoint == f"runs:/{train}/checkpoints/best.pt"
     assert read_checkpoint(local_checkpoint(cell.cfg.model.checkpoint))["arch"] == "small_cnn"
@@ -104,7 +104,7 @@ def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
     dst.set_terminated(cell.runs[0]["run_id"], "KILLED")
     again = gather(page_store, moved)
     assert (again["gathered"], again["already_here"]) == (1, 2)
-    assert tables.certified_table(index(page_store, "paper"), name="t").equals(ours)
+    assert tables.TABLE3.build(index(page_store, "paper"), name="t").equals(ours)
 
 
 def test_a_store_that_is_not_one_is_refused_before_any_run(tmp_path):

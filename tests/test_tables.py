@@ -63,13 +63,13 @@ def hand(out: Path, name: str, file: str, column: str, value=1) -> float:
 
 def test_cells_hold_exactly_the_runs_of_their_config(store):
     src = source(store)
-    df = tables.certified_table(src)
+    df = tables.TABLE3.build(src)
     vanilla = df.loc[("Tz", "Smoothed Vanilla SmallCNN")]
     certify = read_log(store / "runs" / "certify" / "certify.tsv")
     assert len(certify) == 2  # the demo's every 12th of 18 test images
     assert vanilla["Certified Acc"] == pytest.approx(((certify.correct == 1) & (certify.radius >= 0.1)).mean())
     # The evidence page's version: both procedures' cost per image (no sequential run here: empty).
-    page = tables.certified_table(source(store), sequential=True).loc[("Tz", "Smoothed Vanilla SmallCNN")]
+    page = tables.TABLE3_SEQUENTIAL.build(source(store)).loc[("Tz", "Smoothed Vanilla SmallCNN")]
     assert page["s per image"] == pytest.approx(certify.seconds.mean())
     assert np.isnan(page["s per image, sequential"]) and np.isnan(page["Certified Acc, sequential"])
     assert vanilla["Benign Acc"] == pytest.approx(hand(store, "smooth", "smooth.tsv", "correct"))
@@ -84,17 +84,17 @@ def test_cells_hold_exactly_the_runs_of_their_config(store):
 
 
 def test_a_smoke_run_or_other_settings_never_change_a_cell(store):
-    before = tables.certified_table(source(store))
+    before = tables.TABLE3.build(source(store))
     # A smoke run, another alpha and a sequential run of the same model after the full run.
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.max=1"], "smoke")
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.alpha=0.3"], "alpha")
     run(store, [*DEMO, "task=smooth", "model.variant=vanilla", "task.max=1"], "smoke-smooth")
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.sequential=true"], "sequential")
     after_src = source(store)
-    after = tables.certified_table(after_src)
+    after = tables.TABLE3.build(after_src)
     pd.testing.assert_frame_equal(after, before)
     # The page prints the sequential columns beside the fixed-n ones in the same format.
-    page = tables.certified_table(after_src, True, "page", sequential=True).loc[("Tz", "Smoothed Vanilla SmallCNN")]
+    page = tables.TABLE3_SEQUENTIAL.build(after_src, True, "page").loc[("Tz", "Smoothed Vanilla SmallCNN")]
     sequential = read_log(store / "runs" / "sequential" / "certify.tsv")
     at_radius = ((sequential.correct == 1) & (sequential.radius >= 0.1)).mean()
     assert page["Certified Acc, sequential"] == f"{at_radius:.3f}"
@@ -119,7 +119,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=0"], f"{task}-0")
     overrides = tuple([*SETTINGS, "task.skip=1", "task.max=4"])
     src = Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
-    early = tables.certified_table(src)
+    early = tables.TABLE3.build(src)
     assert early.loc[("Tz", "Smoothed Vanilla SmallCNN"), ["Benign Acc", "5-pert Emp. Acc"]].isna().all()
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
     assert notes[("Tz / Smoothed Vanilla SmallCNN", "Benign Acc")] == "shards [1] of task.num_shards=2 not finished"
@@ -127,7 +127,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=1"], f"{task}-1")
     src = Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
-    df = tables.certified_table(src)
+    df = tables.TABLE3.build(src)
     smooth, attack, certify = (
         pd.concat([read_log(out / "runs" / f"{task}-{i}" / f"{task}.tsv", ["idx"]) for i in (0, 1)]) for task in TASKS
     )
@@ -149,9 +149,9 @@ def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, 
     log = tmp_path / "cohen.tsv"
     log.write_text(COHEN)
     run(store, ["experiment=demo", "task=import", f"task.path={log}", "model.variant=augmented"], "import")
-    ours = tables.certified_table(source(store))
+    ours = tables.TABLE3.build(source(store))
     assert np.isnan(ours.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])  # not mixed into ours
-    imported = tables.certified_table(source(store, certify_task="import"))
+    imported = tables.TABLE3.build(source(store, certify_task="import"))
     assert imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == pytest.approx(0.4)
     assert np.isnan(imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Benign Acc"])
     radii, acc = tables.curves(source(store, certify_task="import"))["tz"]["Smoothed Augmented SmallCNN"]
@@ -160,7 +160,7 @@ def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, 
     other.write_text(COHEN.replace("0.5\t1", "0.05\t1"))
     run(store, ["experiment=demo", "task=import", f"task.path={other}", "model.variant=augmented"], "import2")
     src = source(store, certify_task="import")
-    assert np.isnan(tables.certified_table(src).loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])
+    assert np.isnan(tables.TABLE3.build(src).loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
     assert "ambiguous: 2 different finished runs" in notes[("Tz / Smoothed Augmented SmallCNN", "Certified Acc")]
 
@@ -185,7 +185,7 @@ def test_table_3_of_the_released_metaroom_from_imported_logs(tmp_path):
 
 def test_written_files_keep_empty_cells_empty_and_latex_balanced(store, tmp_path):
     src = source(store)
-    df = tables.certified_table(src)
+    df = tables.TABLE3.build(src)
     md, tex, csv = write(df, tmp_path / "t3", "Table 3: $x$ & y_z ~^")
     back = pd.read_csv(csv, keep_default_na=False)
     assert back.loc[back.Model == "Smoothed Augmented SmallCNN", "Certified Acc"].tolist() == [""]
@@ -196,7 +196,7 @@ def test_written_files_keep_empty_cells_empty_and_latex_balanced(store, tmp_path
     columns = len(df.reset_index().columns)
     assert len(lines) == 1 + len(df) and all(ln.count("&") - ln.count(r"\&") == columns - 1 for ln in lines)
     assert r"\caption{Table 3: \$x\$ \& y\_z \textasciitilde{}\textasciicircum{}}" in tex.read_text()
-    shown = tables.certified_table(source(store), show_paper=True)
+    shown = tables.TABLE3.build(source(store), show_paper=True)
     assert shown.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == ""  # no paper value for a SmallCNN
 
 
@@ -209,10 +209,64 @@ def test_sweep_table_from_a_parents_children(store):
     (parent,) = mlflow.search_runs(
         search_all_experiments=True, filter_string="tags.`mrcert.multirun` = 'parent'", output_format="list"
     )
-    sweep = tables.sweep_table(source(store, parent=parent.info.run_id))
+    sweep = tables.SWEEP.build(source(store, parent=parent.info.run_id))
     assert [idx[:2] for idx in sweep.index] == [("tz", 0.05), ("tz", 0.1)]
     assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0.2"] == pytest.approx(0.4)
     assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0"] == pytest.approx(0.6)
+
+
+class Encoded:
+    """A run index whose every cell holds a value that names its own measure: the task's metric,
+    the attack's K and the axis (``VALUES``); a measure not in ``VALUES`` has no run."""
+
+    METRICS = ("base_benign_accuracy", "base_robust_accuracy", "smoothed_robust_accuracy", "smoothed_benign_accuracy")
+
+    def cell(self, overrides):
+        from mrcert.reporting.cells import Cell, compose_config
+
+        cfg = compose_config(tuple(overrides))
+        return Cell(cfg, [pd.Series({"run_id": f"{cfg.task.name}-k{cfg.attack.k}-{cfg.motion.axis}"})])
+
+    def metric(self, cell, name: str) -> float:
+        cfg = cell.cfg
+        if name not in self.METRICS or int(cfg.attack.k) not in (5, 10, 100):
+            return float("nan")
+        axis = paper_results.AXES_ORDER.index(str(cfg.motion.axis).removeprefix("tabletop_"))
+        k = (5, 10, 100).index(int(cfg.attack.k))
+        return round(self.METRICS.index(name) / 10 + k / 100 + axis / 1000, 4)
+
+
+def test_every_declared_table_takes_each_cell_from_its_own_measure():
+    """The declared tables on the reproduction's and the tabletop's own jobs, read through an
+    index whose values name their measure (tenths: the metric, hundredths: K = 5, 10, 100,
+    thousandths: the axis): Table 1 puts base and smoothed side by side at K = 100, the appendix
+    the smoothed 5- and 100-perturbed, the tabletop table the mean benign accuracy over the axes
+    beside each axis's 10-perturbed accuracy; each cell names the run it came from."""
+    src = Source(Encoded(), "quick")
+    by_name = {t.name: t for t in tables.TABLES}
+    t1 = by_name["table1_augmented"].build(src)
+    assert list(t1.columns) == ["SmallCNN Base", "SmallCNN Smoothed"]
+    assert [a for a, _ in t1.index[::2]] == ["Tz", "Tx", "Ty", "Rz", "Rx", "Ry"]
+    assert t1.loc[("Rx", "Benign Accuracy")].tolist() == [0.024, 0.304]  # PREDICT has no K: the experiment's
+    assert t1.loc[("Rx", "100-perturbed Emp. Robust Acc.")].tolist() == [0.124, 0.224]
+    assert (
+        src.sources("table1_augmented")
+        .set_index(["row", "column"])
+        .loc[("Rx / 100-perturbed Emp. Robust Acc.", "SmallCNN Base"), "runs"]
+        == "attack-k100-rx"
+    )
+    five = by_name["appendix_5_vs_100"].build(src)
+    assert five.loc[("Ty", "5-perturbed")].tolist() == [0.202, 0.202]
+    assert five.loc[("Ty", "100-perturbed"), "SmallCNN Augmented"] == 0.222
+    robot = by_name["tabletop"].build(src)
+    assert list(robot.columns) == ["Benign Accuracy", "Tx", "Ty", "Tz", "Rx", "Ry", "Rz"]
+    assert robot.loc[("Base", "Vanilla ResNet-18"), "Benign Accuracy"] == pytest.approx(0.0125)  # over the six axes
+    assert (
+        by_name["tabletop"].build(src, show_paper=True).loc[("Smoothed", "Vanilla ResNet-18"), "Rz"] == "0.213 (0.833)"
+    )
+    t3 = by_name["table3_certified"].build(src)
+    assert t3.loc[("Tz", "Smoothed Vanilla SmallCNN"), "5-pert Emp. Acc"] == 0.2
+    assert np.isnan(t3.loc[("Tz", "Smoothed Vanilla SmallCNN"), "Certified Acc"])
 
 
 @pytest.fixture(scope="module")
@@ -250,7 +304,7 @@ def test_tables_task_writes_every_table_its_sources_and_the_figure(store, tables
 
 
 def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
-    """The evidence page (as `make results` writes it): the Table 3 row, the findings and the
+    """The evidence page (as `make reproduce-tables` writes it): the Table 3 row, the findings and the
     timings, each equal to what the runs' own per-image logs give when recomputed here."""
     page = " ".join((store / "evidence" / "r.md").read_text().split())
     assert (store / "evidence" / "r_certified_accuracy_vs_radius.png").is_file()
@@ -458,7 +512,10 @@ def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_e
     experiment = client.get_experiment(runs["certify/vanilla"].info.experiment_id)
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
     link = ui_link_for(str(store), "http://127.0.0.1:5000")
-    assert link == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=mrcert"
+    assert (
+        link
+        == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=mrcert"
+    )
 
 
 def test_progress_is_a_log_line_every_few_seconds_when_nobody_watches(caplog):
@@ -473,13 +530,13 @@ def test_progress_is_a_log_line_every_few_seconds_when_nobody_watches(caplog):
 
 def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     """make side-by-side on tiny data: a motion-augmented model certified by motion smoothing
-    (experiment=results) and a pixel-noise model by pixel-wise smoothing (experiment=side_by_side,
+    (experiment=reproduce_quick) and a pixel-noise model by pixel-wise smoothing (experiment=side_by_side,
     one interval) give a pair of rows whose numbers are those of their per-image logs, on the
     pixel-wise run's images, with each method's cost per image."""
     from mrcert.reporting import side_by_side
 
     shared = [*SETTINGS, "task.n0=8", "task.n=40"]
-    motion = ["experiment=results", "motion=tz", "model.variant=augmented"]
+    motion = ["experiment=reproduce_quick", "motion=tz", "model.variant=augmented"]
     pixelwise = ["experiment=side_by_side", "method.certify.half_width=0.001", "method.certify.frames=3"]
     run(tmp_path, [*motion, *SETTINGS, "task=train"], "cms-train")
     run(tmp_path, [*motion, *shared, "task=certify"], "cms")

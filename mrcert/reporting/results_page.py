@@ -2,7 +2,7 @@
 certified-accuracy figure, the paper's qualitative findings checked with our numbers, and the
 time each stage took -- all computed from the runs that fill the cells, never by hand.
 
-Written by ``mrcert task=tables task.experiment=results task.page=docs/results.md``.
+Written by ``make reproduce-tables`` (its last stage: ``mrcert task=tables task.page=docs/results.md``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,15 @@ from mrcert.reporting.cells import Cell, compose_config
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
 from mrcert.reporting.source import Source
-from mrcert.reporting.tables import AXIS_NAMES, CERTIFIED, SMOOTHED_BENIGN, arch_name, model_label, robust
+from mrcert.reporting.tables import (
+    AXIS_NAMES,
+    CERTIFIED,
+    REPRODUCTION,
+    SMOOTHED_BENIGN,
+    arch_name,
+    model_label,
+    robust,
+)
 from mrcert.reporting.writers import as_text, markdown
 
 
@@ -310,10 +318,10 @@ def paper_profile_section(src: Source) -> dict | None:
     from a GPU with ``task=gather``): the filled rows beside the paper, their base models, and the
     time each stage took on which machine."""
     profiles = src.index.df.get("tags.mrcert.profile", pd.Series(dtype=str))
-    if not (profiles == PAPER_PROFILE).any():  # nothing to show: compose none of its cells
+    if src.profile == PAPER_PROFILE or not (profiles == PAPER_PROFILE).any():  # the page's own, or nothing to show
         return None
     paper = Source(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
-    experiment = "table3"
+    experiment = REPRODUCTION.format(profile=PAPER_PROFILE)
     filled = {
         (AXIS_NAMES.get(j.axis, j.axis), model_label(j.arch, j.variant)): j
         for j in jobs_of(paper, experiment)
@@ -322,7 +330,7 @@ def paper_profile_section(src: Source) -> dict | None:
     if not filled:
         return None
     jobs = list(filled.values())
-    table = tables.certified_table(paper, show_paper=True, name="paper_profile")
+    table = tables.TABLE3.build(paper, show_paper=True, name="paper_profile")
     times = stage_times(paper, jobs)
     cfg = jobs[0].certify.cfg
     return {
@@ -389,6 +397,8 @@ def page_context(
     machines = sorted({str(m) for m in src.index.df.get("tags.mrcert.machine", pd.Series(dtype=str)).dropna()})
     return {
         "experiment": experiment,
+        "reproduction": experiment == REPRODUCTION.format(profile=src.profile),
+        "profile": src.profile,
         "command": command,
         "setup": setup(src, jobs),
         "paper": {

@@ -1,7 +1,7 @@
 """Camera motion smoothing beside pixel-wise smoothing (``experiment=side_by_side``, docs/method.md §8).
 
 One pair of rows per finished pixel-wise certify run of the experiment's sweep (axis, interval
-``[-a, a]``, frames): that run, and the fixed-n CERTIFY run of ``experiment=results`` with
+``[-a, a]``, frames): that run, and the fixed-n CERTIFY run of ``experiment=reproduce_quick`` with
 the motion-augmented model of the same axis and architecture, restricted to the same test
 images. Each row gives the certified accuracy at the motion radius ``a`` (pixel-wise smoothing
 certifies the whole interval or nothing; motion smoothing certifies ``|motion| < R``), the
@@ -20,7 +20,7 @@ from mrcert.reporting import certify_log
 from mrcert.reporting.source import Source, sweep_combos
 
 EXPERIMENT = "side_by_side"
-MOTION_EXPERIMENT = "results"
+MOTION_EXPERIMENT = "reproduce_quick"
 """Where the motion-augmented models' certify runs come from (the same views, axis and model)."""
 
 

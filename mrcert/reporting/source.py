@@ -61,7 +61,8 @@ class Source:
     provenance: list[dict] = field(default_factory=list)
 
     def experiment_for(self, own: str) -> str:
-        return self.experiment or own
+        """``experiment`` when set, else ``own`` with its ``{profile}`` filled in."""
+        return self.experiment or own.format(profile=self.profile)
 
     def data_of(self, own: str) -> str:
         """The data set the cells of a table whose own experiment is ``own`` are composed on."""

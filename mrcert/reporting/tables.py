@@ -1,9 +1,11 @@
 """The paper's tables and figure, each cell from the runs of exactly one composed config.
 
-A table's rows come from an experiment config's sweep (``hydra.sweeper.params`` of
-``conf/experiment/<name>.yaml``: its axes, models and variants), its columns from measures
-(task, metric and the overrides that fix the measure, e.g. ``attack.k=5``). A cell is the
-config ``experiment=<name> profile=<p> task=<task> <sweep values> <measure overrides>``; its
+Each table is declared once (:class:`Table`, ``TABLES``): its experiment, the data sets it is
+about, and its entries. The jobs of the experiment's sweep (``hydra.sweeper.params`` of
+``conf/experiment/<name>.yaml``: its axes, models and variants) each fill every entry: a
+measure (task, metric and the overrides that fix it, e.g. ``attack.k=100``) at the row and
+column its labels name. A cell is the config
+``experiment=<name> profile=<p> task=<task> <sweep values> <measure overrides>``; its
 value comes from the runs of that config's cell key (:mod:`mrcert.reporting.cells`) or it stays empty
 (NaN, written as an empty string), never zero. Every table is written with the runs that
 filled each cell (``<table>_sources.csv``/``.md``: run ids and MLflow links). With
@@ -12,6 +14,7 @@ filled each cell (``<table>_sources.csv``/``.md``: run ids and MLflow links). Wi
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,6 +31,9 @@ ARCH_NAMES = {"resnet18": "ResNet-18", "resnet50": "ResNet-50", "small_cnn": "Sm
 AXIS_NAMES = {"tz": "Tz", "tx": "Tx", "ty": "Ty", "rz": "Rz", "rx": "Rx", "ry": "Ry"}
 AXES_ORDER = paper_results.AXES_ORDER
 
+REPRODUCTION = "reproduce_{profile}"
+"""The experiment that fills the MetaRoom tables: one per profile (``conf/experiment/``)."""
+
 
 SMOOTHED_BENIGN = Measure("smooth", "smoothed_benign_accuracy")
 CERTIFIED = Measure("certify", "certified_accuracy")
@@ -38,11 +44,11 @@ CERTIFY_SECONDS = Measure("certify", "seconds_per_image")
 SEQUENTIAL_SECONDS = Measure("certify", "seconds_per_image", ("task.sequential=true",))
 
 
-def base_benign(k: int) -> Measure:
+def base_benign(k: int | str) -> Measure:
     return Measure("attack", "base_benign_accuracy", (f"attack.k={k}",))
 
 
-def robust(who: str, k: int) -> Measure:
+def robust(who: str, k: int | str) -> Measure:
     return Measure("attack", f"{who}_robust_accuracy", (f"attack.k={k}",))
 
 
@@ -55,153 +61,163 @@ def model_label(arch: str, variant: str, smoothed: bool = True) -> str:
     return f"{'Smoothed ' if smoothed else ''}{variant.capitalize()} {arch_name(arch)}"
 
 
-# The paper's values of each measure (who, quantity, K); benign accuracy has no K.
-PAPER = {
-    ("base", "benign", None): paper_results.BASE_BENIGN,
-    ("smoothed", "benign", None): paper_results.SMOOTHED_BENIGN,
-    ("base", "perturbed", 100): paper_results.BASE_PERTURBED_100,
-    ("smoothed", "perturbed", 100): paper_results.SMOOTHED_PERTURBED_100,
-    ("smoothed", "perturbed", 5): paper_results.SMOOTHED_PERTURBED_5,
-}
-
-
 def paper_value(who: str, quantity: str, k: int | None, axis: str, arch: str, variant: str) -> float | None:
-    table = PAPER.get((who, quantity, None if quantity == "benign" else k), {})
+    """The paper's value of a measure: ``who`` (base or smoothed) ``quantity`` (benign,
+    perturbed with ``k`` motions, or certified) of a model on an axis; None when it has none."""
+    if quantity == "certified":
+        return paper_results.CERTIFIED.get((axis, arch, variant))
+    table = {
+        ("base", "benign", None): paper_results.BASE_BENIGN,
+        ("smoothed", "benign", None): paper_results.SMOOTHED_BENIGN,
+        ("base", "perturbed", 100): paper_results.BASE_PERTURBED_100,
+        ("smoothed", "perturbed", 100): paper_results.SMOOTHED_PERTURBED_100,
+        ("smoothed", "perturbed", 5): paper_results.SMOOTHED_PERTURBED_5,
+    }.get((who, quantity, None if quantity == "benign" else k), {})
     return table.get((axis, arch, variant))
 
 
-def _axis(cell: Cell) -> str:
-    return str(cell.cfg.motion.axis)
+def tabletop_paper(who: str, quantity: str, axis: str) -> float | None:
+    """The paper's real-robot values: one benign accuracy for both models, 10-perturbed per axis."""
+    if quantity == "benign":
+        return paper_results.TABLETOP_BENIGN
+    return paper_results.TABLETOP_PERTURBED_10.get(axis, (None, None))[("base", "smoothed").index(who)]
 
 
-def certified_table(
-    src: Source,
-    show_paper: bool = False,
-    name: str = "table3_certified",
-    sequential: bool = False,
-    paper_arch: str | None = None,
-) -> pd.DataFrame:
-    """Table 3: benign, 5-perturbed and certified accuracy (fixed-n CERTIFY, the paper's) of the
-    smoothed models; with ``sequential``, sequential CERTIFY's certified accuracy and mean samples
-    per image as extra columns, and both procedures' seconds per image. With ``show_paper`` a
-    cell shows the paper's value of the same axis and variant for ``paper_arch`` (default: the
-    row's own architecture; an architecture the paper did not evaluate, e.g. the small CNN, is
-    compared with one it did only when asked)."""
-    exp = src.experiment_for("table3")
-    jobs = list(src.rows(exp, SMOOTHED_BENIGN))
-    k = int(jobs[0][1].cfg.attack.k) if jobs else 5  # the experiment's attack: the paper's Table 3 has K = 5
-    columns = (
-        ("Benign Acc", SMOOTHED_BENIGN, ("smoothed", "benign", None)),
-        (f"{k}-pert Emp. Acc", robust("smoothed", k), ("smoothed", "perturbed", k)),
-        ("Certified Acc", CERTIFIED, ("certified",)),
-    ) + (
-        (  # columns the paper does not have, each with its printed format
-            ("Certified Acc, sequential", SEQUENTIAL, ".3f"),
-            ("samples per image, sequential", SEQUENTIAL_SAMPLES, ".1f"),
-            ("s per image", CERTIFY_SECONDS, ".2f"),
-            ("s per image, sequential", SEQUENTIAL_SECONDS, ".2f"),
-        )
-        if sequential
-        else ()
-    )
-    rows = {}
-    for combo, first in jobs:
-        ax, a, v = _axis(first), first.cfg.model.arch, first.cfg.model.variant
-        key = (AXIS_NAMES.get(ax, ax), model_label(a, v))
-        theirs = paper_arch or a
-        rows[key] = {}
-        for label, measure, paper in columns:
-            value = src.value(name, key, label, [src.cell(exp, combo, measure)], measure.metric)
-            if isinstance(paper, str):  # a column the paper does not have: ``paper`` is its format
-                rows[key][label] = value if not show_paper or np.isnan(value) else format(value, paper)
+@dataclass(frozen=True)
+class Job:
+    """One job of an experiment's sweep, as a table names it: ``{Axis}``, ``{Arch}``,
+    ``{Model}`` (the smoothed model), ``{Base}`` (the model itself), ``{Variant}``, ``{k}`` (the
+    job's own attack.k) in the entries' labels; ``theirs``: the architecture whose paper values
+    the row is compared with."""
+
+    axis: str
+    arch: str
+    variant: str
+    k: int
+    theirs: str
+
+    @classmethod
+    def of(cls, cell: Cell, paper_arch: str | None) -> Job:
+        cfg = cell.cfg
+        arch, variant = str(cfg.model.arch), str(cfg.model.variant)
+        evaluated = any(key[1] == arch for key in paper_results.CERTIFIED)
+        return cls(str(cfg.motion.axis), arch, variant, int(cfg.attack.k), arch if evaluated else paper_arch or arch)
+
+    def labels(self) -> dict[str, object]:
+        return {
+            "Axis": AXIS_NAMES.get(self.axis, self.axis),
+            "Arch": arch_name(self.arch),
+            "Model": model_label(self.arch, self.variant),
+            "Base": model_label(self.arch, self.variant, smoothed=False),
+            "Variant": self.variant.capitalize(),
+            "k": self.k,
+        }
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One number per job: ``measure`` (its overrides may name ``{k}``) at the row and column
+    whose labels the templates give; ``paper(job)``: the paper's value beside it, or ``fmt``:
+    how to print a column the paper does not have. Entries of several jobs at the same row and
+    column are one cell: the mean of their runs (e.g. a benign accuracy over the axes)."""
+
+    row: tuple[str, ...]
+    column: str
+    measure: Measure
+    paper: Callable[[Job], float | None] | None = None
+    fmt: str | None = None
+
+
+@dataclass(frozen=True)
+class Table:
+    """One of the paper's tables, declared once: its file name, caption, the experiment whose
+    runs fill it (``{profile}`` filled in), the data sets it is about (a cell never shows a run of
+    another; None: any), the names of its row labels, the jobs it shows (``where``) and the
+    entries each job fills. The sigma sweep, whose columns are radii of the certify logs, has
+    its own ``custom`` builder instead of entries."""
+
+    name: str
+    caption: str
+    experiment: str
+    data: tuple[str, ...] | None
+    index: tuple[str, ...] = ()
+    entries: tuple[Entry, ...] = ()
+    where: Callable[[Job], bool] = lambda job: True
+    custom: Callable[[Source, str], pd.DataFrame] | None = None
+
+    def about(self, data: str) -> bool:
+        return self.data is None or data in self.data
+
+    def build(
+        self, src: Source, show_paper: bool = False, name: str | None = None, paper_arch: str | None = None
+    ) -> pd.DataFrame:
+        """The table from ``src``'s runs; with ``show_paper`` each cell reads ``ours (paper)``,
+        the paper's value of the row's own architecture or, for one the paper did not evaluate
+        (the small CNN), of ``paper_arch`` when given. ``name``: the provenance's table name."""
+        name = name or self.name
+        if self.custom is not None:
+            return self.custom(src, name)
+        experiment = src.experiment_for(self.experiment)
+        cells: dict[tuple, dict[str, tuple[list[Cell], Entry, Job]]] = {}
+        for combo, first in src.rows(experiment, SMOOTHED_BENIGN):
+            job = Job.of(first, paper_arch)
+            if not self.where(job):
                 continue
-            reported = (
-                paper_results.CERTIFIED.get((ax, theirs, v))
-                if paper == ("certified",)
-                else paper_value(*paper, ax, theirs, v)
-            )
-            rows[key][label] = _cell(value, reported, show_paper)
-    return _frame(rows, ["Axis", "Model"])
-
-
-def base_vs_smoothed_table(
-    src: Source, variant: str, k: int = 100, show_paper: bool = False, name: str = "table1_augmented"
-) -> pd.DataFrame:
-    """Table 1 (augmented) / its appendix twin (vanilla): benign and K-perturbed, base vs smoothed."""
-    exp = src.experiment_for("table1")
-    measures = {
-        ("benign", "base"): base_benign(k),
-        ("benign", "smoothed"): SMOOTHED_BENIGN,
-        ("perturbed", "base"): robust("base", k),
-        ("perturbed", "smoothed"): robust("smoothed", k),
-    }
-    labels = {"benign": "Benign Accuracy", "perturbed": f"{k}-perturbed Emp. Robust Acc."}
-    rows: dict = {}
-    for combo, first in src.rows(exp, SMOOTHED_BENIGN):
-        if first.cfg.model.variant != variant:
-            continue
-        ax, a = _axis(first), first.cfg.model.arch
-        for quantity in ("benign", "perturbed"):
-            key = (AXIS_NAMES.get(ax, ax), labels[quantity])
-            for who in ("base", "smoothed"):
-                column = f"{arch_name(a)} {who.capitalize()}"
-                measure = measures[(quantity, who)]
-                value = src.value(name, key, column, [src.cell(exp, combo, measure)], measure.metric)
-                reported = paper_value(who, quantity, None if quantity == "benign" else k, ax, a, variant)
-                rows.setdefault(key, {})[column] = _cell(value, reported, show_paper)
-    return _frame(rows, ["Axis", "Metric"])
-
-
-def perturbed_5_vs_100_table(src: Source, show_paper: bool = False, name: str = "appendix_5_vs_100") -> pd.DataFrame:
-    """Appendix: smoothed 5- vs 100-perturbed empirical robust accuracy (K=5 cells from the
-    Table 3 experiment, K=100 cells from the Table 1 experiment)."""
-    rows: dict = {}
-    for k, own in ((5, "table3"), (100, "table1")):
-        exp = src.experiment_for(own)
-        measure = robust("smoothed", k)
-        for combo, first in src.rows(exp, SMOOTHED_BENIGN):
-            ax, a, v = _axis(first), first.cfg.model.arch, first.cfg.model.variant
-            key = (AXIS_NAMES.get(ax, ax), f"{k}-perturbed")
-            column = f"{arch_name(a)} {v.capitalize()}"
-            value = src.value(name, key, column, [src.cell(exp, combo, measure)], measure.metric)
-            rows.setdefault(key, {})[column] = _cell(
-                value, paper_value("smoothed", "perturbed", k, ax, a, v), show_paper
-            )
-    order = sorted(rows, key=lambda r: list(AXIS_NAMES.values()).index(r[0]) if r[0] in AXIS_NAMES.values() else 99)
-    return _frame({r: rows[r] for r in order}, ["Axis", "Metric"])
-
-
-def tabletop_table(src: Source, k: int = 10, show_paper: bool = False, name: str = "tabletop") -> pd.DataFrame:
-    """The real-robot table: benign and K-perturbed accuracy, base vs smoothed, per axis; one
-    pair of rows per model of the experiment.
-
-    The paper reports one benign accuracy for both; ours is the mean over the model's axes."""
-    exp = src.experiment_for("tabletop")
-    by_model: dict[str, list] = {}
-    for combo, first in src.rows(exp, SMOOTHED_BENIGN):
-        model = model_label(str(first.cfg.model.arch), str(first.cfg.model.variant), smoothed=False)
-        by_model.setdefault(model, []).append((combo, first))
-    data = {}
-    for model, jobs in by_model.items():
-        for idx, who in enumerate(("base", "smoothed")):
-            benign = base_benign(k) if who == "base" else SMOOTHED_BENIGN
-            label = (who.capitalize(), model)
-            cells = [src.cell(exp, combo, benign) for combo, _ in jobs]
-            row = {
-                "Benign Accuracy": _cell(
-                    src.value(name, label, "Benign Accuracy", cells, benign.metric),
-                    paper_results.TABLETOP_BENIGN,
-                    show_paper,
+            labels = job.labels()
+            for entry in self.entries:
+                row = tuple(t.format(**labels) for t in entry.row)
+                measure = Measure(
+                    entry.measure.task, entry.measure.metric, tuple(o.format(**labels) for o in entry.measure.overrides)
                 )
-            }
-            for combo, first in jobs:
-                ax = _axis(first)
-                measure = robust(who, k)
-                value = src.value(name, label, AXIS_NAMES.get(ax, ax), [src.cell(exp, combo, measure)], measure.metric)
-                reported = paper_results.TABLETOP_PERTURBED_10.get(ax, (None, None))[idx]
-                row[AXIS_NAMES.get(ax, ax)] = _cell(value, reported, show_paper)
-            data[label] = row
-    return _frame(data, ["Who", "Model"]) if data else pd.DataFrame()
+                at = cells.setdefault(row, {}).setdefault(entry.column.format(**labels), ([], entry, job))
+                at[0].append(src.cell(experiment, combo, measure))
+        rows = {}
+        for row, columns in cells.items():
+            rows[row] = {}
+            for column, (group, entry, job) in columns.items():
+                value = src.value(name, row, column, group, entry.measure.metric)
+                if entry.fmt is not None:  # a column the paper does not have
+                    rows[row][column] = value if not show_paper or np.isnan(value) else format(value, entry.fmt)
+                else:
+                    rows[row][column] = _cell(value, entry.paper(job) if entry.paper else None, show_paper)
+        return _frame(rows, list(self.index)) if rows else pd.DataFrame()
+
+
+def _paper(who: str, quantity: str, k: int | None = None) -> Callable[[Job], float | None]:
+    """The paper's value of a measure for a job (``k=None``: the job's own attack.k)."""
+    return lambda job: paper_value(who, quantity, job.k if k is None else k, job.axis, job.theirs, job.variant)
+
+
+TABLE3_ENTRIES = (
+    Entry(("{Axis}", "{Model}"), "Benign Acc", SMOOTHED_BENIGN, _paper("smoothed", "benign")),
+    Entry(("{Axis}", "{Model}"), "{k}-pert Emp. Acc", robust("smoothed", "{k}"), _paper("smoothed", "perturbed")),
+    Entry(("{Axis}", "{Model}"), "Certified Acc", CERTIFIED, _paper("smoothed", "certified")),
+)
+
+
+def _base_vs_smoothed(variant: str, k: int) -> dict:
+    """Table 1 (augmented) / its appendix twin (vanilla): benign and K-perturbed, base vs smoothed."""
+    benign, perturbed = ("{Axis}", "Benign Accuracy"), ("{Axis}", f"{k}-perturbed Emp. Robust Acc.")
+    return {
+        "index": ("Axis", "Metric"),
+        "where": lambda job: job.variant == variant,
+        "entries": (
+            Entry(benign, "{Arch} Base", base_benign(k), _paper("base", "benign")),
+            Entry(benign, "{Arch} Smoothed", SMOOTHED_BENIGN, _paper("smoothed", "benign")),
+            Entry(perturbed, "{Arch} Base", robust("base", k), _paper("base", "perturbed", k)),
+            Entry(perturbed, "{Arch} Smoothed", robust("smoothed", k), _paper("smoothed", "perturbed", k)),
+        ),
+    }
+
+
+def _tabletop(who: str, benign: Measure) -> tuple[Entry, ...]:
+    """One row of the real-robot table: benign accuracy (the paper reports one, for both
+    models; ours is the mean over the model's axes) and the 10-perturbed accuracy per axis."""
+    row = (who.capitalize(), "{Base}")
+    return (
+        Entry(row, "Benign Accuracy", benign, lambda job: tabletop_paper(who, "benign", job.axis)),
+        Entry(row, "{Axis}", robust(who, "{k}"), lambda job: tabletop_paper(who, "perturbed", job.axis)),
+    )
 
 
 def sweep_table(src: Source, name: str = "sweep") -> pd.DataFrame:
@@ -242,66 +258,76 @@ def sweep_table(src: Source, name: str = "sweep") -> pd.DataFrame:
     return wide
 
 
-@dataclass(frozen=True)
-class Table:
-    """One of the paper's tables, declared once: its file name, caption, the experiment whose
-    runs fill it by default, the data sets it is about (a cell never shows a run of another),
-    and how it is built from a :class:`Source` (``show_paper``: the paper's values beside ours)."""
-
-    name: str
-    caption: str
-    experiment: str
-    data: tuple[str, ...] | None  # None: any data set (the sigma sweep)
-    build: Callable[[Source, bool], pd.DataFrame]
-
-    def about(self, data: str) -> bool:
-        return self.data is None or data in self.data
-
-
 METAROOM = ("metaroom_synth", "metaroom")  # the synthetic room and the released one
-TABLES = (
-    Table(
-        "table3_certified",
-        "Benign, K-perturbed empirical robust and certified accuracy of the smoothed models",
-        "table3",
-        METAROOM,
-        lambda src, paper: certified_table(src, paper),
+TABLE3 = Table(
+    "table3_certified",
+    "Benign, K-perturbed empirical robust and certified accuracy of the smoothed models",
+    REPRODUCTION,
+    METAROOM,
+    ("Axis", "Model"),
+    TABLE3_ENTRIES,
+)
+TABLE3_SEQUENTIAL = dataclasses.replace(
+    TABLE3,
+    entries=TABLE3_ENTRIES
+    + tuple(  # the evidence page's columns the paper does not have, each with its printed format
+        Entry(("{Axis}", "{Model}"), label, measure, fmt=fmt)
+        for label, measure, fmt in (
+            ("Certified Acc, sequential", SEQUENTIAL, ".3f"),
+            ("samples per image, sequential", SEQUENTIAL_SAMPLES, ".1f"),
+            ("s per image", CERTIFY_SECONDS, ".2f"),
+            ("s per image, sequential", SEQUENTIAL_SECONDS, ".2f"),
+        )
     ),
+)
+SWEEP = Table(
+    "sweep",
+    "Certified accuracy against smoothing sigma and radius",
+    "sweep",
+    None,
+    custom=lambda src, name: sweep_table(src, name),
+)
+TABLES = (
+    TABLE3,
     Table(
         "table1_augmented",
         "Base vs smoothed motion-augmented models: benign and 100-perturbed accuracy",
-        "table1",
+        REPRODUCTION,
         METAROOM,
-        lambda src, paper: base_vs_smoothed_table(src, "augmented", 100, paper),
+        **_base_vs_smoothed("augmented", 100),
     ),
     Table(
         "appendix_vanilla",
         "Base vs smoothed vanilla models: benign and 100-perturbed accuracy",
-        "table1",
+        REPRODUCTION,
         METAROOM,
-        lambda src, paper: base_vs_smoothed_table(src, "vanilla", 100, paper, name="appendix_vanilla"),
+        **_base_vs_smoothed("vanilla", 100),
     ),
     Table(
         "appendix_5_vs_100",
         "Smoothed models: 5- vs 100-perturbed empirical robust accuracy",
-        "table3",
+        REPRODUCTION,
         METAROOM,
-        lambda src, paper: perturbed_5_vs_100_table(src, paper),
+        ("Axis", "Metric"),
+        tuple(
+            Entry(
+                ("{Axis}", f"{k}-perturbed"),
+                "{Arch} {Variant}",
+                robust("smoothed", k),
+                _paper("smoothed", "perturbed", k),
+            )
+            for k in (5, 100)
+        ),
     ),
     Table(
         "tabletop",
         "Tabletop: benign and 10-perturbed accuracy, base vs smoothed",
         "tabletop",
         ("tabletop_synth",),
-        lambda src, paper: tabletop_table(src, 10, paper),
+        ("Who", "Model"),
+        _tabletop("base", base_benign("{k}")) + _tabletop("smoothed", SMOOTHED_BENIGN),
     ),
-    Table(
-        "sweep",
-        "Certified accuracy against smoothing sigma and radius",
-        "sweep",
-        None,
-        lambda src, paper: sweep_table(src),
-    ),
+    SWEEP,
 )
 
 
@@ -325,11 +351,11 @@ def curves_figure(data: dict[str, dict[str, Curve]]):
 def curves(src: Source) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
     """Per axis, per model: the exact step function (radii, certified accuracy) of its certify cell."""
     out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-    for _, cell in src.rows(src.experiment_for("table3"), CERTIFIED):
+    for _, cell in src.rows(src.experiment_for(REPRODUCTION), CERTIFIED):
         log = src.index.log(cell)
         if log is not None:
             label = model_label(str(cell.cfg.model.arch), str(cell.cfg.model.variant))
-            out.setdefault(_axis(cell), {})[label] = certify_log.curve(log)
+            out.setdefault(str(cell.cfg.motion.axis), {})[label] = certify_log.curve(log)
     return out
 
 

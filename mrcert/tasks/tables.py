@@ -77,9 +77,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if overview is not None:
         ctx.tracker.log_artifact(overview, "tables")
     if t.page:
-        table = tables.certified_table(src, show_paper=True, name="page", sequential=True, paper_arch=PAPER_ARCH)
-        command = f"mrcert task=tables task.experiment={t.experiment} task.page={t.page}"
-        page, experiment = Path(t.page), str(t.experiment or "table3")
+        table = tables.TABLE3_SEQUENTIAL.build(src, show_paper=True, name="page", paper_arch=PAPER_ARCH)
+        chosen = f" task.experiment={t.experiment}" if t.experiment else ""
+        command = f"mrcert task=tables profile={t.profile}{chosen} task.page={t.page}"
+        page, experiment = Path(t.page), src.experiment_for(tables.REPRODUCTION)
         cells = [c for _, c in src.rows(experiment, tables.SMOOTHED_BENIGN)]
         views = nearest_views(cells[0].cfg.data, page.with_name(f"{page.stem}_views.png")) if cells else None
         page = write_page(src, experiment, table, figure, page, command, views)
@@ -92,7 +93,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     else:
         own = next(table for table in tables.TABLES if table.name == t.print)
         print(f"\n{t.print}: not written: it is about {', '.join(own.data)}, not {src.data_of(own.experiment)}")
-    models = base_models(src, jobs_of(src, src.experiment_for("table3")))
+    models = base_models(src, jobs_of(src, src.experiment_for(tables.REPRODUCTION)))
     if len(models):
         print("\nTheir base classifiers (validation accuracy selected best.pt; test accuracy measured once):\n")
         print(markdown(as_text(models)))
@@ -113,7 +114,7 @@ def method_overview(src: Source, path: Path) -> Path | None:
     """The method in one picture (:func:`mrcert.reporting.overview.method_figure`) from the
     first filled certify cell of Table 3's rows, on its first correctly classified test image;
     None when no certify cell is filled."""
-    for _, cell in src.rows(src.experiment_for("table3"), tables.CERTIFIED):
+    for _, cell in src.rows(src.experiment_for(tables.REPRODUCTION), tables.CERTIFIED):
         log = src.index.log(cell)
         if log is not None and len(log):
             right = log[log["correct"] == 1]
