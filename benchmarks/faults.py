@@ -23,6 +23,13 @@ Two more scenarios follow, each against its own reference:
   line, no traceback; the same command with room must then give the reference's rows and one
   run.
 
+Then damage and bad input, each counted when it gets through: a killed certification whose
+log gains a short row and a row with its radius edited (forged certificates: rows that differ
+from the reference), point clouds cut short (binary and ASCII PLY), a checkpoint with a NaN
+weight and a training that diverges (non-finite models certified), model targets that are not
+modules or that write a file (arbitrary calls), and refused values (a GPU the machine lacks, a
+seed out of range, a class twice) that leave a run RUNNING or FAILED.
+
 Usage: python benchmarks/faults.py [--kills 20] [--jobs 8] [--seed 0]
 """
 
@@ -108,10 +115,10 @@ def same(kind: str, a, b) -> bool:
 
 
 def certify_rows(folder: Path):
-    """A certify log without its timing columns (which differ between identical runs)."""
+    """A certify log without its timing and check columns (which differ between identical runs)."""
     from mrcert.reporting.certify_log import read_log
 
-    return read_log(folder / "certify.tsv").drop(columns=["time", "seconds"])
+    return read_log(folder / "certify.tsv").drop(columns=["time", "seconds", "check"], errors="ignore")
 
 
 def reused(work: Path, a: Path, b: Path, reference_a, rng: random.Random, duration: float, env: dict) -> int:
@@ -181,6 +188,68 @@ def disk_full(work: Path, job: list[str], reference, env: dict, limits_kib=(64, 
     return lost, extra, tracebacks
 
 
+def hostile(work: Path, checkpoint: Path, reference, env: dict) -> dict[str, int]:
+    """Damage and bad input as a hostile but realistic user would bring them; counts of what
+    got through: rows forged into a certificate, partial clouds accepted, non-finite models
+    certified, functions a config called, and runs left RUNNING or FAILED by a refusal."""
+    import numpy as np
+    import open3d as o3d
+    import torch
+
+    counts = dict.fromkeys(("forged", "partial", "non_finite", "calls", "left"), 0)
+    # A killed certification whose log gains a short row and a row with its radius edited.
+    outputs, job = work / "forged", certify(checkpoint)
+    proc = mrcert(job, outputs, env)
+    logs = lambda: list(outputs.glob("runs/certify/*/certify.tsv"))  # noqa: E731
+    while proc.poll() is None and not any(len(p.read_text().splitlines()) >= 2 for p in logs()):
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    (log,) = logs()
+    first = log.read_text().splitlines()[1].split("\t")
+    edited = "\t".join([first[0], first[1], first[2], "5.0", *first[4:]])
+    with open(log, "a") as f:
+        f.write(f"1\t1\t1\t5.0\n{edited}\n")
+    finish(job, outputs, env)
+    counts["forged"] = _foreign(certify_rows(log.parent), reference)
+    # Inputs and values that must be refused before any run: (outputs, args, what got through).
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).uniform(-1, 1, (100, 3))))
+    state = torch.load(checkpoint, weights_only=True)
+    state["model"][next(k for k, v in state["model"].items() if v.is_floating_point())].view(-1)[0] = float("nan")
+    torch.save(state, work / "nan.pt")
+    written = work / "written.txt"
+    cases = []
+    for ascii_ in (False, True):
+        path = work / f"cut-{ascii_}.ply"
+        o3d.io.write_point_cloud(str(path), pcd, write_ascii=ascii_)
+        path.write_bytes(path.read_bytes()[: -(path.stat().st_size // 3)])
+        cases.append(("partial", ["task=render", "data=pointcloud", f"data.path={path}"]))
+    cases += [
+        ("non_finite", certify(work / "nan.pt")),
+        ("calls", [*TINY, "task=train", "model.net._target_=builtins.print"]),
+        ("calls", [*TINY, "task=train", f"+model.net.width={{_target_:builtins.open,file:{written},mode:w}}"]),
+        ("left", [*TINY, "task=train", "device=cuda:7"]),
+        ("left", [*TINY, "task=train", f"seed={2**64}"]),
+        ("left", [*TINY, "task=train", "data.classes=[mug,mug,can]"]),
+    ]
+    for k, (what, args) in enumerate(cases):
+        outputs = work / f"refused-{k}"
+        proc = mrcert(args, outputs, env)
+        proc.communicate()
+        counts[what] += proc.returncode == 0 or written.exists()
+        counts["left"] += sum(r.info.status in ("RUNNING", "FAILED") for r in outcome("certify", outputs)[2])
+        written.unlink(missing_ok=True)
+    # A model that diverges in training: its run FAILED with the reason, nothing certified with it.
+    outputs = work / "diverged"
+    proc = mrcert([*TRAIN, "train.lr=1e12", "train.epochs=2"], outputs, env)
+    proc.communicate()
+    for best in outputs.glob("runs/train/*/best.pt"):
+        certified = mrcert(certify(best), outputs, env)
+        certified.communicate()
+        counts["non_finite"] += certified.returncode == 0
+    return counts
+
+
 def kill_time(rng: random.Random, duration: float) -> float:
     """A moment to kill a job whose uninterrupted run takes ``duration`` s: within its first
     70%, so that a resumed job, which has less left to do, is mostly still running."""
@@ -236,6 +305,12 @@ def main() -> None:
         print(f"disk full while creating the store: {tracebacks} tracebacks, {full_lost} results lost afterwards")
         lost, extra = lost + wrong + full_lost, extra + dup_runs + full_extra
         print(f"{lost} results lost, {mixed} mixed rows, {extra} duplicate or extra runs in all")
+        bad = hostile(work, checkpoint, reference["certify"], env)
+        print(
+            f"{bad['forged']} forged certificates, {bad['partial']} partial clouds accepted, "
+            f"{bad['non_finite']} non-finite models certified, {bad['calls']} arbitrary calls, "
+            f"{bad['left']} runs left RUNNING or FAILED by a refusal"
+        )
     finally:
         if args.keep:
             print(f"work folder kept: {work}")

@@ -6,6 +6,7 @@ import errno
 import logging
 import os
 import shutil
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra import config as mrcert_config
-from mrcert.infra.checkpoints import bind_checkpoint
+from mrcert.infra.checkpoints import bind_checkpoint, local_checkpoint, read_checkpoint
 from mrcert.infra.identity import RunIdentity, identify
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext, fail_parent, find_runs, finished_run, key_lock, log_files_under, task_run
@@ -43,6 +44,8 @@ def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
             return runs[0].info.run_id if runs else None
 
         cfg, train_run = bind_checkpoint(cfg, newest_train_run, TASKS["train"].identity)
+        if train_run is not None:  # a train run's model (a file was checked with the other inputs)
+            read_checkpoint(local_checkpoint(str(cfg.model.checkpoint)))
     return cfg, identify(cfg, task.identity, train_run)
 
 
@@ -132,8 +135,18 @@ def check_writable(root: Path) -> str | None:
     return None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a scheduler's stop): handled as Ctrl-C is, so that the run is closed
+    KILLED with its working time logged, and the same command resumes it."""
+
+
+def _terminate(signum, frame) -> None:
+    raise Terminated()
+
+
 def main() -> None:
     mrcert_config.new_launch_uid()
+    signal.signal(signal.SIGTERM, _terminate)
     if not any(a in ("--help", "-h", "--hydra-help", "--info", "-i") or a.startswith("--cfg") for a in sys.argv[1:]):
         problem = check_writable(_outputs_root(sys.argv[1:]))
         if problem:
@@ -141,9 +154,10 @@ def main() -> None:
             sys.exit(2)
     try:
         _hydra_main()
-    except KeyboardInterrupt:  # the run was closed KILLED on the way out (tracking.task_run)
-        print("mrcert: interrupted; the run is marked KILLED and the same command resumes it", file=sys.stderr)
-        sys.exit(130)
+    except KeyboardInterrupt as exc:  # the run was closed KILLED on the way out (tracking.task_run)
+        how = "stopped (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
+        print(f"mrcert: {how}; the run is marked KILLED and the same command resumes it", file=sys.stderr)
+        sys.exit(128 + signal.SIGTERM if isinstance(exc, Terminated) else 130)
 
 
 if __name__ == "__main__":

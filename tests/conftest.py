@@ -123,3 +123,65 @@ def wait_until(proc: subprocess.Popen, ready: Callable[[], bool], timeout: float
     deadline = time.time() + timeout
     while time.time() < deadline and proc.poll() is None and not ready():
         time.sleep(0.02)
+
+
+# --- what the fault and integrity tests share ---------------------------------------------
+
+PER_RUN = ["time", "seconds", "check"]  # cells that differ between two runs of one result
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    """Two different tiny models as files: ``a`` (best.pt) and ``b`` (last.pt of a longer run)."""
+    from mrcert.__main__ import run_task
+
+    out = tmp_path_factory.mktemp("models")
+    run_task(compose_cfg([*TINY, "task=train", "train.epochs=1", "train.batch_size=8"], out), out / "a")
+    run_task(compose_cfg([*TINY, "task=train", "train.epochs=3", "train.batch_size=8"], out), out / "b")
+    return {"a": out / "a" / "best.pt", "b": out / "b" / "last.pt"}
+
+
+def certify_args(checkpoint: Path, n: int = 200) -> list[str]:
+    return [
+        *TINY,
+        "task=certify",
+        "task.n0=8",
+        f"task.n={n}",
+        "task.max=4",
+        "task.skip=1",
+        f"model.checkpoint={checkpoint}",
+    ]
+
+
+@pytest.fixture(scope="module")
+def reference(checkpoints, tmp_path_factory) -> dict:
+    """The rows an uninterrupted certification gives with each model (data frames)."""
+    from mrcert.__main__ import run_task
+    from mrcert.reporting.certify_log import read_log
+
+    rows = {}
+    for name, path in checkpoints.items():
+        out = tmp_path_factory.mktemp(f"reference-{name}")
+        run_task(compose_cfg(certify_args(path), out), out / "run")
+        rows[name] = read_log(out / "run" / "certify.tsv").drop(columns=PER_RUN, errors="ignore")
+    return rows
+
+
+def store_runs(out: Path, where: str = "") -> list:
+    import mlflow
+
+    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
+    return mlflow.search_runs(search_all_experiments=True, filter_string=where, output_format="list")
+
+
+def certify_logs(out: Path) -> list[Path]:
+    return sorted(out.glob("runs/certify/*/certify.tsv"))
+
+
+def write_cloud(path: Path, ascii: bool = False) -> None:
+    import numpy as np
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(np.random.default_rng(0).uniform(-1, 1, (100, 3)))
+    o3d.io.write_point_cloud(str(path), pcd, write_ascii=ascii)

@@ -2,12 +2,12 @@
 
 import errno
 import math
-import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
@@ -50,14 +50,18 @@ KEYS = [
     "data.protocol.train.yaw_range",
     "data.crop.max_rotation",
 ]
+GPUS = torch.cuda.device_count() if torch.cuda.is_available() else 0
 VALUES = st.one_of(
     st.none(),
     st.booleans(),
     st.integers(-(10**6), 10**6),
+    st.sampled_from([2**32 - 1, 2**32, 2**64]),
     st.floats(allow_nan=True, allow_infinity=True),
     st.text(alphabet=st.characters(blacklist_characters="${}\\"), max_size=8),
     st.lists(st.integers(-5, 5), max_size=3),
-    st.sampled_from(["tx", "rz", "tw", "tx+rz", "cuda:1", "gpu", "vanilla", "vote", "predict", "???"]),
+    st.sampled_from(
+        ["tx", "rz", "tw", "tx+rz", "cuda", "cuda:0", "cuda:1", "gpu", "vanilla", "vote", "predict", "???"]
+    ),
 )
 
 
@@ -96,8 +100,10 @@ ALLOWED = {
     "data.image.fx": lambda v: number(v) and v > 0,
     "data.image.cy": number,
     "data.density": lambda v: number(v) and v > 0,
-    "seed": lambda v: integer(v, 0),
-    "device": lambda v: v in ("auto", "cpu", "cuda") or isinstance(v, str) and re.fullmatch(r"cuda:\d+", v),
+    "seed": lambda v: integer(v, 0) and v < 2**32,
+    "device": lambda v: (
+        isinstance(v, str) and (v in ("auto", "cpu") or GPUS > 0 and v in ("cuda", *(f"cuda:{i}" for i in range(GPUS))))
+    ),
     "model.variant": lambda v: v in ("vanilla", "augmented"),
     "attack.k": lambda v: integer(v, 1),
     "attack.radius": lambda v: number(v) and v >= 0,

@@ -18,56 +18,26 @@ from mrcert.__main__ import run_task
 from mrcert.errors import MrcertError
 from mrcert.infra.store import FileLock, ensure_sqlite_store
 from mrcert.reporting.certify_log import read_log
-from tests.conftest import ROOT, TINY, compose_cfg, file_size_limit, kill_when, run_cli, start_cli, wait_until
-
-TIMING = ["time", "seconds"]
-
-
-@pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory) -> dict[str, Path]:
-    """Two different tiny models as files: ``a`` (best.pt) and ``b`` (last.pt of a longer run)."""
-    out = tmp_path_factory.mktemp("models")
-    run_task(compose_cfg([*TINY, "task=train", "train.epochs=1", "train.batch_size=8"], out), out / "a")
-    run_task(compose_cfg([*TINY, "task=train", "train.epochs=3", "train.batch_size=8"], out), out / "b")
-    return {"a": out / "a" / "best.pt", "b": out / "b" / "last.pt"}
-
-
-def certify_args(checkpoint: Path, n: int = 200) -> list[str]:
-    return [
-        *TINY,
-        "task=certify",
-        "task.n0=8",
-        f"task.n={n}",
-        "task.max=4",
-        "task.skip=1",
-        f"model.checkpoint={checkpoint}",
-    ]
-
-
-@pytest.fixture(scope="module")
-def reference(checkpoints, tmp_path_factory) -> dict[str, pd.DataFrame]:
-    """The rows an uninterrupted certification gives with each model."""
-    rows = {}
-    for name, path in checkpoints.items():
-        out = tmp_path_factory.mktemp(f"reference-{name}")
-        run_task(compose_cfg(certify_args(path), out), out / "run")
-        rows[name] = read_log(out / "run" / "certify.tsv").drop(columns=TIMING)
-    return rows
+from tests.conftest import (
+    PER_RUN,
+    ROOT,
+    certify_args,
+    certify_logs,
+    compose_cfg,
+    file_size_limit,
+    kill_when,
+    run_cli,
+    start_cli,
+    store_runs,
+    wait_until,
+    write_cloud,
+)
 
 
 def test_a_certificate_counts_the_camera_poses_it_projected(reference):
     """Motion smoothing renders each of its n0 + n samples once: the cost a table reports."""
     for rows in reference.values():
         assert (rows.projected == 8 + 200).all()
-
-
-def store_runs(out: Path, where: str = "") -> list:
-    mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    return mlflow.search_runs(search_all_experiments=True, filter_string=where, output_format="list")
-
-
-def certify_logs(out: Path) -> list[Path]:
-    return sorted(out.glob("runs/certify/*/certify.tsv"))
 
 
 def started_for(seconds: float):
@@ -99,7 +69,7 @@ def test_a_kill_at_any_phase_of_a_first_run_is_finished_by_the_same_command(phas
     (run,) = store_runs(tmp_path)
     assert run.info.status == "FINISHED"
     (log,) = certify_logs(tmp_path)  # one run folder: a resume adopts the new launch's folder
-    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), reference["a"])
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=PER_RUN), reference["a"])
 
 
 def test_a_half_made_store_is_explained_in_one_line(tmp_path):
@@ -153,12 +123,12 @@ def test_resume_never_mixes_two_models_in_one_run(checkpoints, reference, tmp_pa
     assert killed_log.read_text() == rows_before  # another model: a new run, not the killed one
     (finished,) = store_runs(tmp_path, "attributes.status = 'FINISHED'")
     pd.testing.assert_frame_equal(
-        read_log(Path(finished.data.tags["mrcert.output_dir"]) / "certify.tsv").drop(columns=TIMING), reference["b"]
+        read_log(Path(finished.data.tags["mrcert.output_dir"]) / "certify.tsv").drop(columns=PER_RUN), reference["b"]
     )
     again = run_cli(first, tmp_path)  # the first model's command resumes its own run
     assert again.returncode == 0, again.stderr[-2000:]
     assert len(store_runs(tmp_path)) == 2
-    pd.testing.assert_frame_equal(read_log(killed_log).drop(columns=TIMING), reference["a"])
+    pd.testing.assert_frame_equal(read_log(killed_log).drop(columns=PER_RUN), reference["a"])
     assert list(killed_log.parent.glob("resumed/*/*.log"))  # the resuming process's log is kept with the run
 
 
@@ -173,17 +143,17 @@ def test_a_run_folder_reused_by_another_model_never_mixes_rows(checkpoints, refe
     assert len(log.read_text().splitlines()) >= 2
     done_b = run_cli(b, tmp_path)
     assert done_b.returncode == 0, done_b.stderr[-2000:]
-    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), reference["b"])  # none of a's rows
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=PER_RUN), reference["b"])  # none of a's rows
     (run_b,) = store_runs(tmp_path, "attributes.status = 'FINISHED'")
     again = run_cli(a, tmp_path)  # a's command resumes a's own run, with a's own rows
     assert again.returncode == 0, again.stderr[-2000:]
-    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), reference["a"])
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=PER_RUN), reference["a"])
     runs = {r.info.run_id: r for r in store_runs(tmp_path)}
     assert len(runs) == 2 and all(r.info.status == "FINISHED" for r in runs.values())
     kept_b = mlflow.artifacts.download_artifacts(run_id=run_b.info.run_id, artifact_path="certify.tsv")
-    pd.testing.assert_frame_equal(read_log(kept_b).drop(columns=TIMING), reference["b"])  # b's result intact
+    pd.testing.assert_frame_equal(read_log(kept_b).drop(columns=PER_RUN), reference["b"])  # b's result intact
     (aside,) = folder.glob("set_aside/*/certify.tsv")  # and b's rows are still on disk
-    pd.testing.assert_frame_equal(read_log(aside).drop(columns=TIMING), reference["b"])
+    pd.testing.assert_frame_equal(read_log(aside).drop(columns=PER_RUN), reference["b"])
 
 
 @pytest.mark.slow
@@ -280,7 +250,7 @@ def test_bad_input_files_fail_before_any_run_exists(checkpoints, tmp_path):
     cloud.write_text("ply\nformat nonsense\n")
     poses.write_text("{not json")
     log.write_text("a\tb\n1\t2\n")
-    _write_cloud(scan)
+    write_cloud(scan)
     cases = [
         (certify_args(tmp_path / "missing.pt"), "model.checkpoint=.*missing.pt' does not exist"),
         (certify_args(garbage), "is not a mrcert checkpoint"),
@@ -321,15 +291,6 @@ def test_a_motion_the_scene_cannot_represent_is_refused_at_once(args, message, t
     assert time.time() - t0 < 30 and proc.returncode == 2 and "Traceback" not in proc.stderr
     assert re.search(message, proc.stderr.strip().splitlines()[-1]), proc.stderr[-1000:]
     assert not (tmp_path / "mlflow.db").exists() or store_runs(tmp_path) == []
-
-
-def _write_cloud(path: Path) -> None:
-    import numpy as np
-    import open3d as o3d
-
-    pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(np.random.default_rng(0).uniform(-1, 1, (100, 3)))
-    o3d.io.write_point_cloud(str(path), pcd)
 
 
 def test_a_checkpoint_of_another_model_config_is_named(checkpoints, tmp_path):

@@ -27,7 +27,7 @@ from tests.conftest import PAPER_K, TINY, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST_CERTIFY = ["task=certify", "task.n0=8", "task.n=40", "task.max=6", "task.batch_size=8"]
-TIMING = ["time", "seconds"]
+PER_RUN = ["time", "seconds", "check"]  # cells that differ between two runs of one result
 
 
 def tiny_cfg(overrides, outputs):
@@ -80,6 +80,32 @@ def test_constant_classifier_certifies_2_605_sigma():
     assert cert.radius / 0.1 == pytest.approx(2.605, abs=5e-4)
 
 
+class NaNFor(Constant):
+    """Class ``cls``, except NaN logits for the images whose first pixel is above ``threshold``."""
+
+    def __init__(self, cls: int, threshold: float):
+        super().__init__(cls)
+        self.threshold = threshold
+
+    def forward(self, x):
+        out = super().forward(x)
+        out[x[:, 0, 0, 0] > self.threshold] = float("nan")
+        return out
+
+
+def test_a_non_finite_logit_is_never_a_vote():
+    """NaN logits argmax to class 0; they must count for no class: a model with NaN logits
+    everywhere abstains, and one with them on some samples gets no votes from those."""
+    dist = SmoothingDistribution(("tz",), (0.1,))
+    render = tiny_sample().renderer()
+    nan = SmoothedClassifier(NaNFor(2, threshold=-1.0), dist, 4)
+    assert nan.sample_counts(render, 50, image_generator(0, 0)).tolist() == [0, 0, 0, 0]
+    cert = nan.certify(render, 20, 100, 0.01, image_generator(0, 0))
+    assert cert.prediction == ABSTAIN
+    some = SmoothedClassifier(NaNFor(2, threshold=2.0), dist, 4)  # a pixel is never above 2: no NaN
+    assert some.sample_counts(render, 50, image_generator(0, 0)).tolist() == [0, 0, 50, 0]
+
+
 def test_predict_abstains_on_ties_and_close_counts():
     decide = SmoothedClassifier.decide
     assert decide(np.array([50, 50, 0]), 0.01) == ABSTAIN
@@ -108,7 +134,7 @@ def test_theorem_1_distribution():
 
 
 def certify_rows(outputs: Path) -> pd.DataFrame:
-    return merge_logs(sorted(outputs.glob("runs/**/certify.tsv"))).drop(columns=TIMING)
+    return merge_logs(sorted(outputs.glob("runs/**/certify.tsv"))).drop(columns=PER_RUN)
 
 
 def test_rows_follow_the_formula_and_batch_size_and_shards_do_not_matter(trained, tmp_path):
@@ -170,7 +196,7 @@ def test_certify_killed_and_restarted_resumes_to_the_identical_tsv(trained, tmp_
     done = run_cli(args, killed)
     assert done.returncode == 0, done.stderr[-2000:]
     assert list((tmp_path / "killed").glob("runs/certify/*/certify.tsv")) == [log]  # continued in place
-    pd.testing.assert_frame_equal(read_log(log).drop(columns=TIMING), certify_rows(full))
+    pd.testing.assert_frame_equal(read_log(log).drop(columns=PER_RUN), certify_rows(full))
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'killed' / 'mlflow.db'}")
     (run,) = mlflow.search_runs(search_all_experiments=True, output_format="list")
     assert run.info.status == "FINISHED" and run.data.metrics["num_images"] == 8
@@ -216,23 +242,62 @@ def test_import_of_a_hand_written_cohen_log(tmp_path):
 
 
 def test_result_log_truncates_a_torn_line_and_checks_its_header(tmp_path):
-    log = ResultLog(tmp_path / "x.tsv", ["idx", "a", "seconds"])
+    log = ResultLog(tmp_path / "x.tsv", ["idx", "a", "seconds"], owner={"run_key": "k1", "run_id": None})
     log.append({"idx": 3, "a": 1.5, "seconds": 0.1})
     with open(log.path, "a") as f:
         f.write("4\t2.")
     assert log.done() == {3} and log.path.read_text().endswith("\n")
-    with pytest.raises(MrcertError, match="expected idx b seconds"):
-        ResultLog(log.path, ["idx", "b", "seconds"]).done()
+    with pytest.raises(MrcertError, match="expected idx b seconds check"):
+        ResultLog(log.path, ["idx", "b", "seconds"], owner=log.owner).done()
     # A log begun by older code, which wrote fewer columns, resumes: its rows are kept, the new cells empty.
-    newer = ResultLog(log.path, ["idx", "a", "seconds", "projected"])
+    newer = ResultLog(log.path, ["idx", "a", "seconds", "projected"], owner=log.owner)
     assert newer.done() == {3}
     newer.append({"idx": 5, "a": 2.5, "seconds": 0.2, "projected": 9})
+    assert newer.done() == {3, 5}  # the upgraded row carries a check value of its new form
     rows = pd.read_csv(log.path, sep="\t")
     assert (
         rows["idx"].tolist() == [3, 5]
         and rows["a"].tolist() == [1.5, 2.5]
         and rows["projected"].isna().tolist() == [True, False]
     )
+
+
+@pytest.mark.parametrize(
+    "damage,reason",
+    [
+        ("1\t1\t1\t5.0\n", "cells where the header has"),  # a short row, as a torn write could leave
+        ("{row}", "logged twice"),  # a row copied twice
+        ("{row_b}", "check value does not match"),  # a row whose value was edited
+        ("{other_key}", "check value does not match"),  # a valid row of another run's log
+        ("{stranger}", "not one of this run's"),
+        ("{mislabelled}", "label 2 where the data set's label of image 4 is 1"),
+    ],
+)
+def test_a_damaged_row_is_set_aside_and_never_adopted(tmp_path, damage, reason):
+    """Every row is checked on resume: its cells, its check value (bound to the run key), its
+    index and its label. A row that fails is moved to set_aside with its reason, and the image
+    is computed again; the valid rows stay."""
+    owner = {"run_key": "k1", "run_id": "r1"}
+    columns = ["idx", "label", "radius", "seconds"]
+    log = ResultLog(tmp_path / "certify.tsv", columns, owner=owner)
+    log.append({"idx": 0, "label": 0, "radius": 0.296, "seconds": 1.0})
+    first = log.path.read_text().splitlines()[1]
+    other = ResultLog(tmp_path / "other.tsv", columns, owner={"run_key": "k2", "run_id": "r2"})
+    other.append({"idx": 1, "label": 0, "radius": 5.0, "seconds": 1.0})
+    forged = {
+        "row": first + "\n",
+        "row_b": first.replace("0.296", "5.0") + "\n",
+        "other_key": other.path.read_text().splitlines()[1] + "\n",
+        "stranger": ResultLog(tmp_path / "s.tsv", columns, owner=owner)._line("9\t0\t5.0\t1.0") + "\n",
+        "mislabelled": ResultLog(tmp_path / "m.tsv", columns, owner=owner)._line("4\t2\t5.0\t1.0") + "\n",
+    }
+    with open(log.path, "a") as f:
+        f.write(damage.format(**forged))
+    again = ResultLog(log.path, columns, owner=owner)
+    assert again.done({0: 0, 1: 0, 4: 1}) == {0}
+    assert read_log(log.path, ["idx"]).radius.tolist() == [0.296]
+    (aside,) = tmp_path.glob("set_aside/rejected_*/certify.rejected.tsv")
+    assert reason in aside.read_text()
 
 
 def test_smooth_and_attack_tasks(trained, tmp_path):

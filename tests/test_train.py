@@ -222,5 +222,9 @@ def test_models_normalise_first_and_build_from_config(tmp_path):
         assert model(torch.rand(2, 3, 90, 160)).shape == (2, 20)
         assert torch.equal(model[0](torch.full((1, 3, 2, 2), 0.5)), torch.zeros(1, 3, 2, 2))
     bad = compose_cfg(["model=small_cnn", "model.net._target_=torch.nn.NoSuchLayer"], tmp_path)
-    with pytest.raises(MrcertError, match="cannot build model.net"):
+    with pytest.raises(MrcertError, match="model.net._target_='torch.nn.NoSuchLayer' is not allowed: an importable"):
         build_model(bad.model, 3)
+    # A module that does not take num_classes: named by the one line instantiation gives.
+    linear = compose_cfg(["model=small_cnn", "model.net._target_=torch.nn.ReLU", "~model.net.width"], tmp_path)
+    with pytest.raises(MrcertError, match="cannot build model.net"):
+        build_model(linear.model, 3)

@@ -7,12 +7,17 @@ normalisation and every architecture sees the same inputs.
 
 from __future__ import annotations
 
+import importlib
+import typing
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch import nn
 
-from mrcert.errors import MrcertError
+from mrcert.errors import ConfigError, MrcertError
 
 
 class Normalize(nn.Module):
@@ -52,8 +57,96 @@ class SmallCNN(nn.Module):
         return self.head(torch.flatten(self.features(x), 1))
 
 
+def predicted(logits: torch.Tensor) -> torch.Tensor:
+    """The class of each row of ``logits`` (B, C); -1 (no class: never a vote, never correct)
+    where a logit is NaN or infinite."""
+    return torch.where(torch.isfinite(logits).all(1), logits.argmax(1), -1)
+
+
+def non_finite(tensors: dict[str, torch.Tensor]) -> list[str]:
+    """The names of the floating-point tensors holding a NaN or an infinity."""
+    return [k for k, v in tensors.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+
+
+def _importable(name: str) -> Any:
+    """The object a dotted name refers to (its module imported, nothing called), or None."""
+    parts = name.split(".")
+    for cut in range(len(parts) - 1, 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:cut]))
+        except ImportError:
+            continue
+        try:
+            for part in parts[cut:]:
+                obj = getattr(obj, part)
+        except AttributeError:
+            return None
+        return obj
+    return None
+
+
+def _made_by(target: Any) -> Any:
+    """What calling ``target`` makes: the class itself, or a function's return annotation."""
+    if isinstance(target, type):
+        return target
+    try:
+        return typing.get_type_hints(target).get("return")
+    except Exception:  # annotations that do not resolve: nothing is known
+        return None
+
+
+def _parameters(target: Any) -> dict[str, Any]:
+    """The annotation of each parameter ``target`` takes (a class: its ``__init__``'s)."""
+    try:
+        return typing.get_type_hints(target.__init__ if isinstance(target, type) else target)
+    except Exception:
+        return {}
+
+
+def check_net(node: Any, where: str = "model.net", wanted: type = nn.Module) -> None:
+    """Refuse, before anything is called, a ``_target_`` that does not make a ``wanted`` (an
+    ``nn.Module`` subclass, or a function annotated to return one, such as
+    ``torchvision.models.resnet18``), and a nested ``_target_`` anywhere but as a parameter that
+    the target itself declares to take such a module (checked the same way): a config builds the
+    network it describes and calls nothing else."""
+    name = node.get("_target_") if isinstance(node, Mapping) else None
+    target = _importable(str(name))
+    if target is None:
+        raise ConfigError(f"{where}._target_", name, "an importable class or function")
+    made = _made_by(target)
+    if not (isinstance(made, type) and issubclass(made, wanted)):
+        kind = "an nn.Module subclass" if wanted is nn.Module else f"a {wanted.__module__}.{wanted.__qualname__}"
+        raise ConfigError(f"{where}._target_", name, f"{kind}, or a function annotated to return one")
+    takes = _parameters(target)
+    for key, value in node.items():
+        inner = value if isinstance(value, Mapping) else {}
+        nested = "_target_" in inner or (isinstance(value, (list, tuple)) and _has_target(value))
+        if not nested:
+            continue
+        module = takes.get(str(key))
+        if not (isinstance(value, Mapping) and isinstance(module, type) and issubclass(module, nn.Module)):
+            raise ConfigError(
+                f"{where}.{key}._target_", _target_of(value), f"none: {name} does not take a module as {key}"
+            )
+        check_net(value, f"{where}.{key}", module)
+
+
+def _has_target(value: Any) -> bool:
+    if isinstance(value, Mapping):
+        return "_target_" in value or any(_has_target(v) for v in value.values())
+    return isinstance(value, (list, tuple)) and any(_has_target(v) for v in value)
+
+
+def _target_of(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return value.get("_target_")
+    return next((_target_of(v) for v in value if _has_target(v)), None)
+
+
 def build_model(model: DictConfig, num_classes: int) -> nn.Sequential:
-    """``Normalize`` followed by ``model.net`` instantiated with ``num_classes``."""
+    """``Normalize`` followed by ``model.net`` instantiated with ``num_classes`` (its targets
+    checked first: :func:`check_net`)."""
+    check_net(model.net)
     try:
         net = instantiate(model.net, num_classes=num_classes)
     except Exception as exc:  # a user's _target_ that does not import or does not take num_classes

@@ -23,6 +23,7 @@ from scipy.stats import binomtest, norm
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, compose, is_translation
 from mrcert.core.method import ABSTAIN, Certificate, Method, Render, single_axis
+from mrcert.core.models import predicted
 from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
 from mrcert.errors import ConfigError, MrcertError
 
@@ -225,7 +226,8 @@ class VoteCounter:
                 rendered = time.perf_counter()
                 for s in range(0, len(images), self.batch_size):
                     batch = images[s : s + self.batch_size].to(self.device, non_blocking=True)
-                    votes += np.bincount(self.base(batch).argmax(1).cpu().numpy(), minlength=self.num_classes)
+                    classes = predicted(self.base(batch)).cpu().numpy()
+                    votes += np.bincount(classes[classes >= 0], minlength=self.num_classes)
                 self.timings["render"] += rendered - start
                 self.timings["model"] += time.perf_counter() - rendered
         return votes

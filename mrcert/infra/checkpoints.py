@@ -201,6 +201,14 @@ def read_checkpoint(path: Path | str) -> dict[str, Any]:
             f"{str(path)!r} is not a mrcert checkpoint (a file written by task=train): "
             f"it lacks {', '.join(k for k in REQUIRED_KEYS if not isinstance(state, dict) or k not in state)}"
         )
+    from mrcert.core.models import non_finite
+
+    bad = non_finite(state["model"]) if isinstance(state["model"], dict) else []
+    if bad:
+        raise MrcertError(
+            f"checkpoint {str(path)!r} holds NaN or infinite weights ({', '.join(bad[:3])}): a model that diverged "
+            "in training classifies nothing; train it again (e.g. with a smaller train.lr)"
+        )
     return state
 
 

@@ -88,7 +88,7 @@ RULES: dict[str, Rule] = {
     ),
     "backend": (lambda v: v in ("auto", "numba", "torch"), "one of auto, numba, torch"),
     "decision": (lambda v: v in ("predict", "vote"), "predict or vote"),
-    "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+    "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**32, "an integer in [0, 2**32)"),
     "room_density": (_positive, "a finite number > 0 (metres)"),
     "per_class": (_positive_int, "an integer >= 1"),
     "max_translation": (lambda v: _number(v) and v >= 0, "a finite number >= 0 (metres)"),
@@ -125,6 +125,10 @@ RULES: dict[str, Rule] = {
     "yaws": (lambda v: v is None or isinstance(v, list) and len(v) > 0 and all(_number(x) for x in v), _ANGLES),
     "distance": (lambda v: v is None or _positive(v), "a finite number > 0 (metres), or null"),
     "occlusion_patch": (_positive_int, "an integer >= 1 (pixels)"),
+    "classes": (
+        lambda v: v is None or isinstance(v, list) and len(v) > 0 and len(set(v)) == len(v),
+        "null (every class), or a non-empty list of class names, each once",
+    ),
     "surroundings": (
         lambda v: isinstance(v, list) and all(x in ("room", "table") for x in v),
         "a list of scene parts from room, table (or [] for the object alone)",
@@ -287,12 +291,24 @@ def validate(cfg: DictConfig) -> None:
     motion = data.get("motion", {})
     _motion_scale(motion, data.get("data", {}))
     _method(cfg, data)
-    device = data.get("device", "auto")
-    if not (
-        device in ("auto", "cpu", "cuda")
-        or (isinstance(device, str) and device.startswith("cuda:") and device[5:].isdigit())
-    ):
-        raise ConfigError("device", device, "auto, cpu, cuda or cuda:N")
+    if "model" in data:
+        from mrcert.core.models import check_net
+
+        check_net(data["model"].get("net"))
+    _device(data.get("device", "auto"))
+
+
+def _device(device: Any) -> None:
+    """``auto``, ``cpu``, or a GPU this machine has (``cuda``, ``cuda:N``)."""
+    import torch
+
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    gpus = f"cuda, cuda:0 to cuda:{count - 1}" if count else "no GPU on this machine"
+    if device in ("auto", "cpu") or count and device == "cuda":
+        return
+    if isinstance(device, str) and device.startswith("cuda:") and device[5:].isdigit() and int(device[5:]) < count:
+        return
+    raise ConfigError("device", device, f"auto, cpu, or a GPU of this machine ({gpus})")
 
 
 def plain(cfg: DictConfig | Mapping[str, Any], throw_on_missing: bool = False) -> dict[str, Any]:

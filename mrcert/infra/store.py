@@ -89,8 +89,24 @@ def schema_version(db: Path) -> str | None:
     return row[0] if row else None
 
 
+def damage(db: Path) -> str | None:
+    """What SQLite's ``quick_check`` finds wrong in ``db`` (damaged pages), or None."""
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as conn:
+            found = [row[0] for row in conn.execute("PRAGMA quick_check")]
+    except sqlite3.Error as exc:
+        return str(exc)
+    return None if found == ["ok"] else "; ".join(found[:2])
+
+
 def check_sqlite_store(db: Path) -> None:
-    """Raise a one-line error when ``db`` is not a complete store of this MLflow's schema."""
+    """Raise a one-line error when ``db`` is damaged or not a complete store of this MLflow's schema."""
+    broken = damage(db)
+    if broken:
+        raise MrcertError(
+            f"the MLflow store {db} is damaged ({broken}): restore it from a backup, or move it aside "
+            f"(mv {db} {db}.broken) to start a new store and rerun; the run folders keep their files"
+        )
     version = schema_version(db)
     if version == schema_head():
         return

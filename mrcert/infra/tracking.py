@@ -7,6 +7,7 @@ file in the sweep directory -- never by jobs racing to create them (docs/method.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -475,7 +476,9 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
             except KeyboardInterrupt:
                 mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
                 raise
-            except BaseException:
+            except BaseException as exc:
+                with contextlib.suppress(Exception):  # the reason, in the UI (never hiding the error itself)
+                    mlflow.set_tag("mrcert.failure", f"{type(exc).__name__}: {exc}"[:5000])
                 mlflow.end_run("FAILED")
                 raise
     finally:

@@ -10,11 +10,12 @@ the exact step function of the radii.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import logging
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -37,18 +38,34 @@ def format_row(row: dict, columns: list[str]) -> str:
     return "\t".join(repr(v) if isinstance(v, float) else str(v) for v in (values[c] for c in columns))
 
 
+CHECK = "check"
+"""The last column of every per-image log a run writes: the row's check value."""
+
+
+def check_value(key: str, line: str) -> str:
+    """The check value of a log line (its cells before the check) written for run key ``key``:
+    a hash of both, so that a row changed, cut short or copied from another run's log fails."""
+    return hashlib.sha256(f"{key}\n{line}".encode()).hexdigest()[:16]
+
+
 class ResultLog:
-    """An append-only per-image TSV (first column ``idx``) that a restarted run resumes.
+    """An append-only per-image TSV (first column ``idx``, last column ``check``) that a
+    restarted run resumes.
 
     A log belongs to one run: ``owner`` (the run key and, when tracked, the MLflow run id) is
     written beside it as ``<log>.owner``. Rows are adopted only by the run that wrote them; a
     log of any other run found in the folder (a reused ``hydra.run.dir``, an overwritten
     checkpoint) is moved aside to ``set_aside/`` before the first row, never mixed, and is
-    taken back when its own run resumes there."""
+    taken back when its own run resumes there. Every row carries a check value bound to the run
+    key (:func:`check_value`); on resume a row is adopted only when it has every column, its
+    check value, an index of this run's images and that image's label. Any other row (a torn
+    write, a bad copy, a hand edit) is set aside with its reason and its image computed again."""
 
     def __init__(self, path: Path, columns: list[str] = COLUMNS, owner: dict[str, str | None] | None = None):
-        self.path, self.columns = Path(path), list(columns)
+        self.path = Path(path)
+        self.columns = [c for c in columns if c != CHECK]
         self.owner = owner
+        self.key = str((owner or {}).get("run_key") or "")
         self._claimed = owner is None
 
     @property
@@ -61,9 +78,7 @@ class ResultLog:
             return
         theirs = _read_owner(self.owner_path)
         if theirs != self.owner and (self.path.exists() or self.owner_path.exists()):
-            run = (theirs or {}).get("run_id") or "unknown-run"
-            aside = self.path.parent / SET_ASIDE / f"{run}_{time.strftime('%Y%m%d-%H%M%S')}_{os.getpid()}"
-            aside.mkdir(parents=True, exist_ok=True)
+            aside = self._aside((theirs or {}).get("run_id") or "unknown-run")
             for f in (self.path, self.owner_path):
                 if f.exists():
                     os.replace(f, aside / f.name)
@@ -87,32 +102,88 @@ class ResultLog:
         os.replace(tmp, self.owner_path)
         self._claimed = True
 
-    def done(self) -> set[int]:
-        """Indices already done by this run; truncates a torn last line left by a crash."""
+    def _aside(self, name: str) -> Path:
+        aside = self.path.parent / SET_ASIDE / f"{name}_{time.strftime('%Y%m%d-%H%M%S')}_{os.getpid()}"
+        aside.mkdir(parents=True, exist_ok=True)
+        return aside
+
+    def done(self, expected: Mapping[int, int] | None = None) -> set[int]:
+        """Indices already done by this run. ``expected``: each of this run's image indices with
+        its label in the data set; a row of any other index, of another label, without every
+        column or whose check value fails is set aside (``set_aside/rejected_*``), never adopted.
+        A torn last line left by a crash is dropped; rows of older code with fewer columns are
+        kept (their new cells empty)."""
         self._claim()
         if not self.path.exists():
             return set()
         text = self.path.read_text()
-        if text and not text.endswith("\n"):
-            text = text[: text.rfind("\n") + 1]
-            self.path.write_text(text)
-        lines = text.splitlines()
+        lines = text.split("\n")[:-1]  # the text after the last newline: empty, or a line torn by a crash
         if not lines:
+            self.path.write_text("")
             return set()
         header = lines[0].split("\t")
-        if header != self.columns[: len(header)]:
-            raise MrcertError(f"{self.path} has header {lines[0]!r}, expected {' '.join(self.columns)}")
-        if len(header) < len(self.columns):  # older code wrote fewer columns: its rows stay, those cells empty
-            self.path.write_text("\n".join(["\t".join(self.columns), *lines[1:]]) + "\n")
-        return {int(line.split("\t", 1)[0]) for line in lines[1:]}
+        own = header[:-1] if header[-1] == CHECK else header
+        if own != self.columns[: len(own)]:
+            raise MrcertError(f"{self.path} has header {lines[0]!r}, expected {' '.join([*self.columns, CHECK])}")
+        kept, rejected, seen = [], [], set()
+        for line in lines[1:]:
+            cells = line.split("\t")
+            reason = self._reason(cells, header, expected, seen)
+            if reason:
+                rejected.append(f"{reason}\t{line}")
+                continue
+            seen.add(int(cells[0]))
+            row = dict(zip(own, cells[:-1], strict=True))
+            kept.append(self._line("\t".join(row.get(c, "") for c in self.columns)))
+        rewritten = ["\t".join([*self.columns, CHECK]), *kept]
+        if rewritten != lines or not text.endswith("\n"):
+            if rejected:
+                aside = self._aside("rejected") / f"{self.path.stem}.rejected.tsv"
+                aside.write_text("\n".join(["reason\tline", *rejected]) + "\n")
+                log.warning(
+                    "%s: %d rows failed validation (first: %s); set aside to %s, their images are computed again",
+                    self.path,
+                    len(rejected),
+                    rejected[0].split("\t", 1)[0],
+                    aside,
+                )
+            tmp = self.path.with_name(self.path.name + f".tmp-{os.getpid()}")
+            tmp.write_text("\n".join(rewritten) + "\n")
+            os.replace(tmp, self.path)
+        return seen
+
+    def _reason(self, cells: list[str], header: list[str], expected: Mapping[int, int] | None, seen: set[int]) -> str:
+        """Why a row cannot be adopted ('' when it can)."""
+        if header[-1] != CHECK:
+            return "written without a check value"
+        if len(cells) != len(header):
+            return f"{len(cells)} cells where the header has {len(header)}"
+        if check_value(self.key, "\t".join(cells[:-1])) != cells[-1]:
+            return "its check value does not match the row and this run's key"
+        try:
+            idx = int(cells[0])
+        except ValueError:
+            return f"idx {cells[0]!r} is not an integer"
+        if idx in seen:
+            return f"image {idx} is logged twice"
+        if expected is not None and idx not in expected:
+            return f"image {idx} is not one of this run's"
+        if expected is not None and "label" in header:
+            label = cells[header.index("label")]
+            if label != str(expected[idx]):
+                return f"label {label} where the data set's label of image {idx} is {expected[idx]}"
+        return ""
+
+    def _line(self, body: str) -> str:
+        return f"{body}\t{check_value(self.key, body)}"
 
     def append(self, row: dict) -> None:
         self._claim()
         new = not self.path.exists() or self.path.stat().st_size == 0
         with open(self.path, "a") as f:
             if new:
-                f.write("\t".join(self.columns) + "\n")
-            f.write(format_row(row, self.columns) + "\n")
+                f.write("\t".join([*self.columns, CHECK]) + "\n")
+            f.write(self._line(format_row(row, self.columns)) + "\n")
             f.flush()
 
 

@@ -18,6 +18,7 @@ import torch
 from omegaconf import DictConfig
 
 from mrcert.core.geometry import axis_index
+from mrcert.core.models import predicted
 from mrcert.core.smoothing import ABSTAIN, image_generator
 from mrcert.errors import MrcertError
 from mrcert.infra.tracking import RunContext
@@ -54,7 +55,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         zero = torch.zeros(1, 6, dtype=torch.float64)
         images, _ = sample.render(torch.cat([zero, motions]), backend=t.backend)
         logits = ev.model(images.to(ev.device)).cpu()
-        preds = logits.argmax(1)
+        preds = predicted(logits)
         others = logits.clone()
         others[:, sample.label] = -torch.inf
         margin = logits[1:, sample.label] - others[1:].max(1).values
@@ -87,5 +88,5 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
                 row |= {"smoothed_robust": 1, "smoothed_worst": float(motions[int(np.argmin(votes)), axis_index(axis)])}
         return row
 
-    run_per_image(log, ev.indices, attack_one, f"attack {cfg.attack.name} k={cfg.attack.k}")
+    run_per_image(log, ev, attack_one, f"attack {cfg.attack.name} k={cfg.attack.k}")
     return summarize(ctx, "attack", log.path, cfg)

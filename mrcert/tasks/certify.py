@@ -63,7 +63,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "axis": dist.name,
         }
 
-    run_per_image(log, ev.indices, certify_one, f"certify {dist.name}")
+    run_per_image(log, ev, certify_one, f"certify {dist.name}")
     title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, smoothing {dist.name}"
     report(
         certify_log.read_log(log.path),

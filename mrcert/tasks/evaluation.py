@@ -86,10 +86,11 @@ def summarize(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[st
     return metrics
 
 
-def run_per_image(log: ResultLog, indices: list[int], work: Callable[[int], dict[str, Any]], desc: str) -> int:
-    """Run ``work(i)`` for every index not yet in ``log``, appending each row as it is done."""
-    done = log.done()
-    todo = [i for i in indices if i not in done]
+def run_per_image(log: ResultLog, ev: Evaluation, work: Callable[[int], dict[str, Any]], desc: str) -> int:
+    """Run ``work(i)`` for every image of ``ev`` not yet in ``log``, appending each row as it is
+    done; a row already there is adopted only when it is valid for that image (its label)."""
+    done = log.done({i: int(ev.samples.labels[i]) for i in ev.indices})
+    todo = [i for i in ev.indices if i not in done]
     for i in progress(todo, desc):
         start = time.perf_counter()
         row = work(i)

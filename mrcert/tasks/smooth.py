@@ -29,5 +29,5 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "axis": ev.method.name,
         }
 
-    run_per_image(log, ev.indices, predict_one, "smooth")
+    run_per_image(log, ev, predict_one, "smooth")
     return summarize(ctx, "smooth", log.path, cfg)

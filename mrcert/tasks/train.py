@@ -30,7 +30,7 @@ from torch import nn
 
 from mrcert.core.method import Method
 from mrcert.core.methods import build_method
-from mrcert.core.models import build_model
+from mrcert.core.models import build_model, non_finite, predicted
 from mrcert.core.smoothing import image_generator
 from mrcert.data.datasets import ImageSet
 from mrcert.data.holdout import validation_split
@@ -98,7 +98,7 @@ def evaluate(
                 [seen.perturb(x[j : j + 1], image_generator(seed, "evaluation", s + j)) for j in range(len(x))]
             )
         logits = model(x).float().cpu()
-        correct += int((logits.argmax(1) == labels[s : s + batch]).sum())
+        correct += int((predicted(logits) == labels[s : s + batch]).sum())
         loss += float(nn.functional.cross_entropy(logits, labels[s : s + batch], reduction="sum"))
     return correct / max(len(labels), 1), loss / max(len(labels), 1)
 
@@ -184,6 +184,12 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             total_loss += loss.detach().double() * len(idx)
             correct += (logits.argmax(1) == y).sum()
         lr = optimizer.param_groups[0]["lr"]
+        diverged = non_finite(model.state_dict()) + ([] if torch.isfinite(total_loss) else ["the training loss"])
+        if diverged:  # nothing of this epoch is saved: best.pt and last.pt keep the last finite one
+            raise MrcertError(
+                f"training diverged in epoch {epoch + 1}: {', '.join(diverged[:3])} stopped being finite "
+                f"(train.lr={r.lr}); {checkpoints.BEST} and {checkpoints.LAST} keep the last finite epoch, if any"
+            )
         scheduler.step()
         history = {
             "train_loss": float(total_loss) / len(order),

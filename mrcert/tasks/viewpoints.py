@@ -24,6 +24,7 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig
 
+from mrcert.core.models import predicted
 from mrcert.data.datasets import render_poses
 from mrcert.data.sources import load
 from mrcert.data.synthetic import SyntheticData
@@ -53,7 +54,7 @@ def classify(model: torch.nn.Module, images: np.ndarray, device: torch.device, b
     """The classes ``model`` predicts for uint8 images (N, H, W, C)."""
     x = torch.from_numpy(images).permute(0, 3, 1, 2)
     return np.concatenate(
-        [model(to_device(x[s : s + batch], device)).argmax(1).cpu().numpy() for s in range(0, len(x), batch)]
+        [predicted(model(to_device(x[s : s + batch], device))).cpu().numpy() for s in range(0, len(x), batch)]
     )
 
 
