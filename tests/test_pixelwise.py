@@ -110,6 +110,24 @@ def test_a_bound_from_the_frames_alone_fails_the_dense_check_where_the_real_one_
     assert (seen_left <= left).all() and (seen_right <= right).all()
 
 
+def test_a_rotation_piece_of_pi_or_more_is_refused_where_its_bound_would_not_hold():
+    """The bound of a rotation piece places its arc in the triangle of its ends and their
+    tangents' meeting point, which exists only for arcs narrower than pi. Two frames at -pi and
+    pi about rz are the same image, so a 'bound' over that piece would read 0 while the image
+    at 0 lies far from both: such a piece is refused, by the method and by the bound itself."""
+    points, colors = occluding_scene()
+    frames = frame_motions("rz", np.pi - 1e-9, 2)
+    images = render(points, colors, frames)
+    middle = render(points, colors, torch.zeros(1, 6, dtype=torch.float64))[0]
+    assert float((images[0] - images[1]).norm()) < 1e-3 < float((middle - images[0]).norm())
+    with pytest.raises(ValueError, match="narrower than pi"):
+        piece_bounds(points, colors, PAPER_K, "rz", frames, images, 1.0)
+    with pytest.raises(ConfigError, match="at least 3 for half_width"):
+        PixelwiseSmoothing("rz", 0.25, np.pi - 1e-9, 2)
+    PixelwiseSmoothing("rz", 0.25, np.pi - 1e-9, 3)  # pieces just under pi: bounded
+    PixelwiseSmoothing("tz", 0.25, 10.0, 2)  # a translation piece of any width: a segment
+
+
 def test_more_frames_give_smaller_bounds():
     points, colors = occluding_scene()
     worst = []
@@ -204,6 +222,10 @@ def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_pa
         (["method=pixelwise", "motion=txyz_rz"], "motion"),
         (["method=pixelwise", "method.certify.frames=1"], "method.certify.frames"),
         (["method=pixelwise", "method.certify.half_width=0"], "method.certify.half_width"),
+        (
+            ["method=pixelwise", "motion=rz", "method.certify.half_width=3.14159", "method.certify.frames=2"],
+            "method.certify.frames",
+        ),  # a piece of 2 pi: its arc does not fit the tangent triangle
     ],
 )
 def test_bad_method_settings_are_refused_naming_the_key(overrides, key, tmp_path):

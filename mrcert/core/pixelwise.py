@@ -112,6 +112,8 @@ def piece_bounds(
     amounts = frames[:, i].to(torch.float64).numpy()
     if len(amounts) < 2 or not np.all(np.diff(amounts) > 0):
         raise ValueError("frames must be at least 2 motions on one axis, in increasing order")
+    if not is_translation(axis) and np.diff(amounts).max() >= np.pi:
+        raise ValueError(f"a rotation piece must be narrower than pi (its arc's bound); got {np.diff(amounts).max()}")
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     c, height, width = images.shape[1:]
     xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).numpy())
@@ -275,6 +277,15 @@ class PixelwiseSmoothing(Method):
             raise ConfigError("method.certify.half_width", self.half_width, "> 0 (the motion's unit)")
         if int(self.frames) != self.frames or self.frames < 2:
             raise ConfigError("method.certify.frames", self.frames, "an integer >= 2")
+        piece = 2 * self.half_width / (self.frames - 1)
+        if not is_translation(self.axis) and piece >= np.pi:
+            least = int(np.floor(2 * self.half_width / np.pi)) + 2  # pieces narrower than pi
+            raise ConfigError(
+                "method.certify.frames",
+                self.frames,
+                f"at least {least} for half_width={self.half_width} on {self.axis}: each piece between frames "
+                f"must be narrower than pi (here {piece:.6g} rad), the arc a rotation's bound covers",
+            )
 
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> PixelwiseSmoothing:
