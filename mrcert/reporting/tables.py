@@ -61,18 +61,23 @@ def model_label(arch: str, variant: str, smoothed: bool = True) -> str:
     return f"{'Smoothed ' if smoothed else ''}{variant.capitalize()} {arch_name(arch)}"
 
 
+# The paper's values of each measure (who, quantity, K); benign accuracy and certified accuracy have no K.
+PAPER = {
+    ("base", "benign", None): paper_results.BASE_BENIGN,
+    ("smoothed", "benign", None): paper_results.SMOOTHED_BENIGN,
+    ("base", "perturbed", 100): paper_results.BASE_PERTURBED_100,
+    ("smoothed", "perturbed", 100): paper_results.SMOOTHED_PERTURBED_100,
+    ("smoothed", "perturbed", 5): paper_results.SMOOTHED_PERTURBED_5,
+    ("smoothed", "certified", None): paper_results.CERTIFIED,
+}
+PAPER_ARCHS = frozenset(arch for _, arch, _ in paper_results.CERTIFIED)
+"""The architectures the paper evaluated."""
+
+
 def paper_value(who: str, quantity: str, k: int | None, axis: str, arch: str, variant: str) -> float | None:
     """The paper's value of a measure: ``who`` (base or smoothed) ``quantity`` (benign,
     perturbed with ``k`` motions, or certified) of a model on an axis; None when it has none."""
-    if quantity == "certified":
-        return paper_results.CERTIFIED.get((axis, arch, variant))
-    table = {
-        ("base", "benign", None): paper_results.BASE_BENIGN,
-        ("smoothed", "benign", None): paper_results.SMOOTHED_BENIGN,
-        ("base", "perturbed", 100): paper_results.BASE_PERTURBED_100,
-        ("smoothed", "perturbed", 100): paper_results.SMOOTHED_PERTURBED_100,
-        ("smoothed", "perturbed", 5): paper_results.SMOOTHED_PERTURBED_5,
-    }.get((who, quantity, None if quantity == "benign" else k), {})
+    table = PAPER.get((who, quantity, k if quantity == "perturbed" else None), {})
     return table.get((axis, arch, variant))
 
 
@@ -100,8 +105,8 @@ class Job:
     def of(cls, cell: Cell, paper_arch: str | None) -> Job:
         cfg = cell.cfg
         arch, variant = str(cfg.model.arch), str(cfg.model.variant)
-        evaluated = any(key[1] == arch for key in paper_results.CERTIFIED)
-        return cls(str(cfg.motion.axis), arch, variant, int(cfg.attack.k), arch if evaluated else paper_arch or arch)
+        theirs = arch if arch in PAPER_ARCHS else paper_arch or arch
+        return cls(str(cfg.motion.axis), arch, variant, int(cfg.attack.k), theirs)
 
     def labels(self) -> dict[str, object]:
         return {

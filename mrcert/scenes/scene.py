@@ -66,54 +66,59 @@ def _whole_lines(body: bytes, count: int, tokens: int) -> int:
     return sum(1 for line in body.splitlines()[:count] if len(line.split()) == tokens)
 
 
+def _header(path: Path, last: bytes) -> tuple[list[str], int] | None:
+    """A cloud file's header lines, through the line that starts with ``last``, and the byte
+    offset where its data begin; None when the first 64 KiB hold no such line."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    at = head.find(b"\n" + last)
+    if at < 0:
+        return None
+    stop = head.find(b"\n", at + 1)
+    if stop < 0:
+        return None
+    return head[:stop].decode("latin-1").splitlines(), stop + 1
+
+
 def missing_data(path: Path) -> str | None:
     """Why a ``.ply`` or ``.pcd`` file holds less data than its header declares (a cut copy:
     Open3D then only warns and fills the points it could not read), or None. Checks the points
-    (PLY: the vertices, when they come first) in ASCII and binary files."""
-    data = path.read_bytes()
-    end = data.find(b"end_header\n") if path.suffix.lower() == ".ply" else -1
-    if path.suffix.lower() == ".ply" and end >= 0:
-        header, body = data[:end].decode("latin-1").splitlines(), data[end + len(b"end_header\n") :]
-        fmt = next((line.split()[1] for line in header if line.startswith("format ")), "ascii")
+    (PLY: the vertices, when they come first) in ASCII and binary files; a binary file's data is
+    measured by its size, only an ASCII file's is read."""
+    suffix = path.suffix.lower()
+    found = _header(path, b"end_header" if suffix == ".ply" else b"DATA ") if suffix in (".ply", ".pcd") else None
+    if found is None:
+        return None
+    header, start = found
+    words = [line.split() for line in header]
+    if suffix == ".ply":
+        fmt = next((w[1] for w in words if w[:1] == ["format"] and len(w) > 1), "ascii")
         elements: list[tuple[str, int, list[str]]] = []
-        for line in header:
-            words = line.split()
-            if words[:1] == ["element"] and len(words) == 3:
-                elements.append((words[1], int(words[2]), []))
-            elif words[:1] == ["property"] and elements:
-                elements[-1][2].append(words[1])
+        for w in words:
+            if w[:1] == ["element"] and len(w) == 3:
+                elements.append((w[1], int(w[2]), []))
+            elif w[:1] == ["property"] and elements:
+                elements[-1][2].append(w[1])
         if not elements or elements[0][0] != "vertex":
             return None
         _, count, types = elements[0]
-        if fmt == "ascii":
-            have = _whole_lines(body, count, len(types))
-        elif "list" in types or any(t not in _PLY_SIZES for t in types):
+        ascii_, tokens = fmt == "ascii", len(types)
+        if not ascii_ and ("list" in types or any(t not in _PLY_SIZES for t in types)):
             return None
-        else:
-            have = len(body) // sum(_PLY_SIZES[t] for t in types)
-        return None if have >= count else f"declares {count} points but holds data for {have}"
-    if path.suffix.lower() == ".pcd":
-        fields: dict[str, list[str]] = {}
-        lines = data.split(b"\n")
-        for k, raw in enumerate(lines):
-            words = raw.decode("latin-1").split()
-            if words:
-                fields[words[0]] = words[1:]
-            if words[:1] == ["DATA"]:
-                count = int(fields.get("POINTS", ["0"])[0])
-                kind = words[1] if len(words) > 1 else ""
-                body = b"\n".join(lines[k + 1 :])
-                if kind == "ascii":
-                    have = _whole_lines(body, count, sum(int(c) for c in fields.get("COUNT", ["1"])))
-                elif kind == "binary":
-                    sizes = [
-                        int(a) * int(b) for a, b in zip(fields.get("SIZE", []), fields.get("COUNT", []), strict=False)
-                    ]
-                    have = len(body) // max(sum(sizes), 1)
-                else:
-                    return None
-                return None if have >= count else f"declares {count} points but holds data for {have}"
-    return None
+        record = 0 if ascii_ else sum(_PLY_SIZES[t] for t in types)
+    else:
+        fields = {w[0]: w[1:] for w in words if w}
+        count, kind = int(fields.get("POINTS", ["0"])[0]), (fields["DATA"] + [""])[0]
+        if kind not in ("ascii", "binary"):
+            return None
+        ascii_, tokens = kind == "ascii", sum(int(c) for c in fields.get("COUNT", ["1"]))
+        sizes = zip(fields.get("SIZE", []), fields.get("COUNT", []), strict=False)
+        record = max(sum(int(a) * int(b) for a, b in sizes), 1)
+    if ascii_:
+        have = _whole_lines(path.read_bytes()[start:], count, tokens)
+    else:
+        have = (path.stat().st_size - start) // record
+    return None if have >= count else f"declares {count} points but holds data for {have}"
 
 
 @functools.lru_cache(maxsize=1)
