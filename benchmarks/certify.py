@@ -12,7 +12,10 @@ every variant of the forward passes must predict the same classes on them. On CU
 rendering of the next batch overlaps the model (as in the tasks) and the peak GPU memory is
 printed. Medians over repeats, interleaved (the reference with certify, the forward-pass
 variants with one another).
-Usage: python benchmarks/certify.py [--axis tz] [--threads 2] [--device cpu|cuda] [--compile] [override ...]
+The images of the chosen projection back end (``--backend``; on CUDA the default renders on the
+GPU with the triton kernels) are checked bit for bit against the CPU kernel's.
+Usage: python benchmarks/certify.py [--axis tz] [--threads 2] [--device cpu|cuda] [--backend auto|numba|triton|torch]
+       [--compile] [override ...]
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ def main() -> None:
     ap.add_argument("--profile", default="quick", choices=["quick", "paper"])
     ap.add_argument("--cprofile", action="store_true", help="print a cProfile of one certified image")
     ap.add_argument("--overlap", action="store_true", help="render the next batch while the model runs")
+    ap.add_argument("--backend", default="auto", help="projection back end (auto: numba on CPU, triton on CUDA)")
     ap.add_argument("--compile", action="store_true", help="add torch.compile's forward passes (needs a C++ compiler)")
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. task.batch_size=200 model.net.width=16")
     args = ap.parse_args()
@@ -83,7 +87,13 @@ def run(args, arch: str) -> None:
     eager = build_model(cfg.model, 20).to(device).eval()
     model = for_inference(copy.deepcopy(eager), device)
     motions = dist.sample(1100, image_generator(0, 0))
-    renders = sample.renderer()(motions).to(device)
+    renders = sample.renderer("numba")(motions).to(device)  # the CPU kernel's images: the reference
+
+    def on_device(test_sample):
+        """The sample's renderer as the tasks build it: on the model's device unless numba is asked for."""
+        return (test_sample if args.backend == "numba" else test_sample.to(device)).renderer(args.backend)
+
+    same = torch.equal(on_device(sample)(motions).to(device), renders)
 
     def sync():
         if device.type == "cuda":
@@ -104,7 +114,7 @@ def run(args, arch: str) -> None:
         test_sample = samples[0]  # building the sample (cloud in the camera frame, crop) is per-image work
         built = time.perf_counter() - start
         smoothed = SmoothedClassifier(model, dist, 20, batch, device, overlap, chunk)
-        smoothed.certify(test_sample.renderer(), 100, 1000, 0.01, image_generator(0, 0))
+        smoothed.certify(on_device(test_sample), 100, 1000, 0.01, image_generator(0, 0))
         total = time.perf_counter() - start
         return total, built, smoothed.votes.timings["render"], smoothed.votes.timings["model"]
 
@@ -131,8 +141,9 @@ def run(args, arch: str) -> None:
         f"{arch}, {args.axis} (sigma {dist.sigmas[0]}), {args.profile} MetaRoom sample: "
         f"{len(sample.points):,} points, {len(sample.crop_points):,} after the crop; "
         f"n0 + n = 1100, batch {batch} (rendered {chunk} at once), {where}"
-        f"{', overlapped rendering' if overlap else ''}, median of {args.repeats}"
+        f"{', overlapped rendering' if overlap else ''}, projection back end {args.backend}, median of {args.repeats}"
     )
+    print(f"its 1100 images equal the CPU kernel's bit for bit: {'yes' if same else 'NO'}")
     print(f"{'':<34}{'seconds':>10}{'vs model alone':>16}")
     for name, value in (
         ("1100 forward passes alone", ref),

@@ -15,6 +15,8 @@ from hydra import compose, initialize_config_dir
 from mrcert.infra.config import CONF_DIR
 
 os.environ.setdefault("MLFLOW_ENABLE_ASYNC_LOGGING", "false")
+if not torch.cuda.is_available():  # the triton back end's kernels then run under Triton's interpreter
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 
 # The paper's 160 x 90 camera (docs/method.md §2).
 PAPER_K = torch.tensor([[386.274, 0.0, 80.0], [0.0, 386.274, 45.0], [0.0, 0.0, 1.0]], dtype=torch.float64)

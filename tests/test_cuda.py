@@ -22,8 +22,9 @@ pytestmark = [
 ]
 
 
+@pytest.mark.parametrize("backend", ["triton", "torch"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_cuda_projection_equals_the_cpu_kernel_bit_for_bit(seed):
+def test_cuda_projection_equals_the_cpu_kernel_bit_for_bit(seed, backend):
     rng = np.random.default_rng(seed)
     pts, cols = random_cloud(rng, n=200_000)
     copies = torch.from_numpy(rng.choice(len(pts), 5000, replace=False))  # exact ties
@@ -32,7 +33,7 @@ def test_cuda_projection_equals_the_cpu_kernel_bit_for_bit(seed):
     cpu = project(pts, cols, PAPER_K, motions, 90, 160, backend="numba")
     order = locality_order(pts, PAPER_K, 90, 160)
     for p, c, rank in ((pts, cols, None), (pts[order], cols[order], order)):
-        gpu = project(p.cuda(), c.cuda(), PAPER_K, motions.cuda(), 90, 160, backend="torch", rank=rank)
+        gpu = project(p.cuda(), c.cuda(), PAPER_K, motions.cuda(), 90, 160, backend=backend, rank=rank)
         assert torch.equal(gpu[0].cpu(), cpu[0]), "the images differ"
         depth = gpu[1].cpu()
         differ = depth != cpu[1]
@@ -78,3 +79,36 @@ def test_overlapped_rendering_on_cuda_gives_the_same_votes():
         for overlap in (False, True)
     ]
     assert (votes[0] == votes[1]).all()
+
+
+def test_a_sample_rendered_on_the_gpu_gets_the_votes_of_its_cpu_renders():
+    """What the tasks do on a GPU (the sample moved there, the triton kernels render it) gives the
+    votes of the CPU kernel's images classified on the same GPU: the images are the same bits."""
+    from mrcert.data.samples import TestSample
+
+    rng = np.random.default_rng(5)
+    pts, cols = random_cloud(rng, n=50_000)
+    dist = SmoothingDistribution(("ry",), (0.0436,))
+    sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
+    smoothed = SmoothedClassifier(_classifier().cuda(), dist, 5, 200, "cuda", overlap=True)
+    votes = [smoothed.sample_counts(s.renderer(), 1000, image_generator(0, 9)) for s in (sample, sample.to("cuda"))]
+    assert (votes[0] == votes[1]).all()
+
+
+def test_a_sample_moved_to_the_gpu_renders_motions_beyond_its_crop_exactly():
+    """Motions inside the crop's bound render from the crop moved to the GPU, those beyond from
+    the whole cloud, moved when first needed: every image is the CPU kernel's."""
+    from mrcert.data.samples import TestSample
+
+    rng = np.random.default_rng(6)
+    pts, cols = random_cloud(rng, n=50_000)
+    dist = SmoothingDistribution(("tz",), (0.1,))
+    sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
+    motions = torch.zeros(6, 6, dtype=torch.float64)
+    motions[:, 2] = torch.tensor([0.0, 0.3, -0.5, 0.9, -1.2, 2.0])  # the bound is 0.6
+    moved = sample.to("cuda")
+    assert moved.crop_points.is_cuda and not moved.cloud.is_cuda  # the whole cloud stays until needed
+    for chosen in (motions[:3], motions[3:], motions):  # all inside, all beyond, mixed
+        images, depth = moved.render(chosen)
+        expected = sample.render(chosen)
+        assert images.is_cuda and torch.equal(images.cpu(), expected[0]) and torch.equal(depth.cpu(), expected[1])

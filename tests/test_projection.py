@@ -367,3 +367,50 @@ def test_culled_blocks_change_no_pixel(spread, rng):
     torch_out = project(pts, cols, PAPER_K, motions, 90, 160, backend="torch")
     assert torch.equal(numba_out[0], torch_out[0]) and torch.equal(numba_out[1], torch_out[1])
     assert (numba_out[1] < torch.inf).any()  # some points do land
+
+
+# The triton back end: on a GPU its compiled kernels, elsewhere the same kernels under Triton's
+# interpreter (tests/conftest.py sets TRITON_INTERPRET=1 where there is no GPU).
+TRITON_DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _tied_cloud(rng, n):
+    """A random cloud (some points behind the camera) with 10% exact copies in other colours."""
+    pts, cols = random_cloud(rng, n=n, behind=n // 20)
+    copies = torch.from_numpy(rng.choice(len(pts), len(pts) // 10, replace=False))
+    return torch.cat([pts, pts[copies]]), torch.cat([cols, cols[copies].flip(1)])
+
+
+@pytest.mark.parametrize("given_order", ["rows", "locality order with ranks", "shuffled with ranks"])
+def test_triton_kernels_give_the_cpu_kernels_images_and_depths_bit_for_bit(given_order, rng, monkeypatch):
+    """Exact ties (copies of points in other colours: the lower rank must win), points behind the
+    camera, motions on every axis and large ones that move whole blocks out of view, launches
+    split over motions: every pixel and depth equals the numba kernel's."""
+    from mrcert.core import projection_cuda
+
+    pts, cols = _tied_cloud(rng, 1500)
+    motions = torch.cat([random_motions(rng, per_axis=1), random_motions(rng, per_axis=1)[-2:] * 12])
+    expected = project(pts, cols, PAPER_K, motions, 90, 160, backend="numba")
+    order = {
+        "rows": None,
+        "locality order with ranks": projection.locality_order(pts, PAPER_K, 90, 160),
+        "shuffled with ranks": torch.from_numpy(rng.permutation(len(pts))),
+    }[given_order]
+    p, c = (pts, cols) if order is None else (pts[order].contiguous(), cols[order].contiguous())
+    monkeypatch.setattr(projection_cuda, "MAX_PIXELS", 3 * 90 * 160)  # three motions per launch
+    images, depth = project(
+        p.to(TRITON_DEVICE), c.to(TRITON_DEVICE), PAPER_K, motions, 90, 160, backend="triton", rank=order
+    )
+    assert images.device.type == TRITON_DEVICE and images.dtype == torch.float32
+    assert torch.equal(depth.cpu(), expected[1]), "depths differ"
+    assert torch.equal(images.cpu(), expected[0]), "images differ"
+    assert (expected[1] < torch.inf).sum() > 1000  # the scene does land
+    reversed_ranks = project(pts, cols, PAPER_K, motions, 90, 160, backend="numba", rank=-torch.arange(len(pts)))
+    assert not torch.equal(reversed_ranks[0], expected[0])  # and the tie rule decides pixels
+
+
+def test_the_triton_back_end_wants_a_gpu_or_triton_s_interpreter(monkeypatch):
+    pts, cols = random_cloud(np.random.default_rng(0), n=10)
+    monkeypatch.setenv("TRITON_INTERPRET", "0")
+    with pytest.raises(ValueError, match="triton projection backend needs CUDA tensors, got device cpu"):
+        project(pts, cols, PAPER_K, torch.zeros(1, 6), 90, 160, backend="triton")

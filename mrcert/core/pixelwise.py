@@ -109,17 +109,21 @@ def piece_bounds(
     ``per_pixel`` those (K - 1, H, W) maps come back too (left, right, left map, right map).
     """
     i = axis_index(axis)
-    amounts = frames[:, i].to(torch.float64).numpy()
+    amounts = frames[:, i].to(torch.float64).cpu().numpy()
     if len(amounts) < 2 or not np.all(np.diff(amounts) > 0):
         raise ValueError("frames must be at least 2 motions on one axis, in increasing order")
     if not is_translation(axis) and np.diff(amounts).max() >= np.pi:
         raise ValueError(f"a rotation piece must be narrower than pi (its arc's bound); got {np.diff(amounts).max()}")
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     c, height, width = images.shape[1:]
-    xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).numpy())
-    table = np.ascontiguousarray(torch.as_tensor(colors).to(torch.float64).numpy())
-    frames_np = np.ascontiguousarray(images.to(torch.float64).reshape(len(amounts), c, height * width).numpy())
-    ranks = np.arange(len(xyz)) if rank is None else np.ascontiguousarray(torch.as_tensor(rank).to(torch.int64).numpy())
+    xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).cpu().numpy())
+    table = np.ascontiguousarray(torch.as_tensor(colors).to(torch.float64).cpu().numpy())
+    frames_np = np.ascontiguousarray(images.to(torch.float64).reshape(len(amounts), c, height * width).cpu().numpy())
+    ranks = (
+        np.arange(len(xyz))
+        if rank is None
+        else np.ascontiguousarray(torch.as_tensor(rank).to(torch.int64).cpu().numpy())
+    )
     pieces = len(amounts) - 1
     left, right = np.empty(pieces), np.empty(pieces)
     maps = np.empty((2, pieces if per_pixel else 0, height * width))

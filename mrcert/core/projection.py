@@ -15,16 +15,19 @@ reordered copy and its culling boxes are kept for the last :data:`PREPARED_CLOUD
 rendered (by tensor identity and torch's version counter), so a cloud rendered again and
 again -- a test sample under 1,100 motions -- is ordered once.
 
-Two back ends compute exactly the same float64 operations in the same order, so their
+Three back ends compute exactly the same float64 operations in the same order, so their
 images are identical to the bit:
 
 * ``numba``: a compiled z-buffer kernel, parallel over motions (CPU tensors, the default there);
-* ``torch``: scatter-min over pixels, chunked over motions to bound memory (any device,
-  the default on CUDA).
+* ``triton``: Triton kernels, parallel over blocks of points and motions, on the cloud in
+  locality order kept on the device (:mod:`mrcert.core.projection_cuda`; CUDA tensors, the
+  default there);
+* ``torch``: scatter-min over pixels, chunked over motions to bound memory (any device).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import threading
 import weakref
 from collections import OrderedDict
@@ -40,7 +43,7 @@ from mrcert.core.geometry import rotvec_to_matrix
 # OpenMP first: thread-safe, and skips probing an old system TBB (which only warns).
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
-Backend = Literal["auto", "numba", "torch"]
+Backend = Literal["auto", "numba", "torch", "triton"]
 
 DEFAULT_CHUNK_ELEMENTS = 1 << 22
 """Upper bound on motions x points held at once by the torch back end (about 32 MB per buffer)."""
@@ -69,15 +72,16 @@ def project(
         motions: (B, 6) ``(tx, ty, tz, rx, ry, rz)`` camera motions (docs/method.md §1).
         height, width: image size H x W.
         background: value of pixels that no point hits.
-        backend: ``"numba"``, ``"torch"`` or ``"auto"`` (numba on CPU, torch elsewhere).
+        backend: ``"numba"``, ``"triton"``, ``"torch"`` or ``"auto"`` (numba on CPU, triton on CUDA
+            where Triton is installed, torch elsewhere).
         chunk_elements: torch back end only: at most this many motions x points at once.
         rank: (N,) distinct integers: the index each point has for the tie rule (default: its row).
-        locality: numba back end only: render the cloud in :func:`locality_order` for the
+        locality: numba and triton back ends: render the cloud in :func:`locality_order` for the
             unmoved camera, kept for the next calls (the default: smoothing's motions are small);
             False renders it in the order given (for poses far from the reference camera, such
             as views of a world-frame scene). The images are the same either way.
 
-    The numba back end keeps the cloud's locality order for the next calls (module docstring):
+    The numba and triton back ends keep the cloud's locality order for the next calls (module docstring):
     change a cloud in place through torch (which counts versions) or pass a new tensor, never
     write into it through a NumPy view between calls.
 
@@ -89,25 +93,35 @@ def project(
     points = torch.as_tensor(points)
     device = points.device
     colors = torch.as_tensor(colors, device=device)
-    motions = torch.as_tensor(motions, dtype=torch.float64, device=device)
+    motions = torch.as_tensor(motions, dtype=torch.float64)  # where given: rotations are made on the CPU
     K = torch.as_tensor(K, dtype=torch.float64)
     _check_inputs(points, colors, K, motions, height, width)
     if backend == "auto":
-        backend = "numba" if device.type == "cpu" else "torch"
-    if backend not in ("numba", "torch"):
-        raise ValueError(f"unknown projection backend {backend!r}; allowed: auto, numba, torch")
+        gpu = "triton" if importlib.util.find_spec("triton") else "torch"
+        backend = {"cpu": "numba", "cuda": gpu}.get(device.type, "torch")
+    if backend not in ("numba", "torch", "triton"):
+        raise ValueError(f"unknown projection backend {backend!r}; allowed: auto, numba, torch, triton")
 
     if rank is not None:
         rank = torch.as_tensor(rank, device=device)  # the same tensor when given one (project() keeps its order)
         if tuple(rank.shape) != (points.shape[0],):
             raise ValueError(f"rank must have shape ({points.shape[0]},), got {tuple(rank.shape)}")
-    R = rotations(motions)
-    t = motions[:, :3]
+    R = rotations(motions).to(device)  # motions on the CPU: the GPU's queue is not waited for
+    t = motions[:, :3].to(device)
     intr = tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     if backend == "numba":
         if device.type != "cpu":
             raise ValueError(f"the numba projection backend needs CPU tensors, got device {device}")
-        return _project_numba(_prepared(points, colors, rank, K, height, width, locality), R, t, intr, background)
+        return _project_numba(
+            _prepared(points, colors, rank, K, height, width, locality, BLOCK), R, t, intr, background
+        )
+    if backend == "triton":
+        from mrcert.core import projection_cuda
+
+        if device.type != "cuda" and not projection_cuda.interpreting():
+            raise ValueError(f"the triton projection backend needs CUDA tensors, got device {device}")
+        cloud = _prepared(points, colors, rank, K, height, width, locality, projection_cuda.BLOCK, device)
+        return projection_cuda.render(cloud, R, t, intr, background)
     rank = torch.arange(points.shape[0], device=device) if rank is None else rank.to(torch.int64)
     winner, depth = _zbuffer_torch(points.to(torch.float64), rank, R, t, intr, height, width, chunk_elements)
     images = _gather_colors(colors, winner, background, height, width)
@@ -230,9 +244,10 @@ PREPARED_CLOUDS = 2
 
 @dataclass(frozen=True)
 class _Cloud:
-    """A cloud as the numba kernel reads it: points (3, N: the x, y and z rows, so that the
-    kernel loads each coordinate of consecutive points as one vector), ranks and colours in
-    locality order, and the culling box of every block of :data:`BLOCK` consecutive points."""
+    """A cloud as the kernels read it: points (3, N: the x, y and z rows, so that a kernel
+    loads each coordinate of consecutive points as one vector), ranks and colours in locality
+    order, and the culling box of every block of consecutive points (:data:`BLOCK` for the numba
+    kernel); NumPy arrays for the numba kernel, tensors on the device for the triton kernels."""
 
     points: np.ndarray
     rank: np.ndarray
@@ -259,15 +274,18 @@ _PREPARED: OrderedDict[tuple, tuple[tuple, _Cloud]] = OrderedDict()
 _PREPARED_LOCK = threading.Lock()
 
 
-def _prepared(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
-    """The cloud in locality order (or as given), from the cache when these very tensors (same
+def _prepared(points, colors, rank, K, height, width, locality: bool, block: int, device=None) -> _Cloud:
+    """The cloud in locality order (or as given) with culling boxes of ``block`` points, as
+    NumPy arrays or (``device``) tensors there, from the cache when these very tensors (same
     versions) were prepared for this camera. Tensors made under ``torch.inference_mode`` have no
     version counter, so a cloud holding one is prepared afresh at every call."""
     tensors = (points, colors, rank)
     if any(isinstance(x, torch.Tensor) and x.is_inference() for x in tensors):
-        return _prepare(points, colors, rank, K, height, width, locality)
+        return _prepare(points, colors, rank, K, height, width, locality, block, device)
     key = (
         locality,
+        block,
+        str(device),
         *(id(x) for x in tensors),
         *(-1 if x is None else x._version for x in tensors),
         *(float(v) for v in K.flatten()),
@@ -282,7 +300,7 @@ def _prepared(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
         ):
             _PREPARED.move_to_end(key)
             return hit[1]
-    cloud = _prepare(points, colors, rank, K, height, width, locality)
+    cloud = _prepare(points, colors, rank, K, height, width, locality, block, device)
     refs = tuple(None if x is None else weakref.ref(x) for x in tensors)
     with _PREPARED_LOCK:
         _PREPARED[key] = (refs, cloud)
@@ -291,18 +309,21 @@ def _prepared(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
     return cloud
 
 
-def _prepare(points, colors, rank, K, height, width, locality: bool) -> _Cloud:
-    xyz = np.ascontiguousarray(points.to(torch.float64).numpy())
+def _prepare(points, colors, rank, K, height, width, locality: bool, block: int, device) -> _Cloud:
+    xyz = np.ascontiguousarray(points.to(torch.float64).cpu().numpy())
     dtype = colors.dtype if colors.is_floating_point() else torch.float32
-    table = np.ascontiguousarray(colors.to(dtype).numpy())
-    ranks = np.arange(len(xyz)) if rank is None else np.ascontiguousarray(rank.to(torch.int64).numpy())
+    table = np.ascontiguousarray(colors.to(dtype).cpu().numpy())
+    ranks = np.arange(len(xyz)) if rank is None else np.ascontiguousarray(rank.to(torch.int64).cpu().numpy())
     if locality:
         order = locality_order(torch.from_numpy(xyz), K, height, width).numpy()
         stored = np.empty_like(xyz), np.empty_like(table), np.empty_like(ranks)
         _gather(order, xyz, table, ranks, *stored)
         xyz, table, ranks = stored
-    center, half = _block_bounds(xyz, BLOCK)
-    return _Cloud(np.ascontiguousarray(xyz.T), ranks, table, center, half, height, width)
+    center, half = _block_bounds(xyz, block)
+    arrays = (np.ascontiguousarray(xyz.T), ranks, table, center, half)
+    if device is not None:
+        arrays = tuple(torch.from_numpy(a).to(device) for a in arrays)
+    return _Cloud(*arrays, height, width)
 
 
 def _check_inputs(points, colors, K, motions, height, width) -> None:

@@ -20,6 +20,7 @@ with the motion into it), the camera, and the label. Sound speed-ups:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 
@@ -66,6 +67,7 @@ class TestSample:
     crop_colors: torch.Tensor | None = field(default=None, repr=False)
     crop_rank: torch.Tensor | None = field(default=None, repr=False)  # each crop point's row in the cloud
     frame: torch.Tensor | None = None  # (6,) the motion from the cloud's frame to the test pose's camera
+    device: torch.device | None = None  # where it renders (None: where its cloud is; see to())
 
     @functools.cached_property
     def points(self) -> torch.Tensor:
@@ -125,6 +127,27 @@ class TestSample:
             sample.crop_rank = torch.nonzero(mask).flatten()
         return sample
 
+    @property
+    def render_device(self) -> torch.device:
+        """Where the sample renders and its images are made."""
+        return self.colors.device if self.device is None else self.device
+
+    def to(self, device: torch.device | str) -> TestSample:
+        """The sample rendering on ``device`` (itself when it already does): its crop moves there
+        now, the whole cloud only when a motion beyond the crop's bound first needs it."""
+        device = torch.device(device)
+        if self.render_device == device:
+            return self
+        crop = {name: getattr(self, name) for name in ("crop_points", "crop_colors", "crop_rank")}
+        return dataclasses.replace(
+            self, device=device, **{k: None if v is None else v.to(device) for k, v in crop.items()}
+        )
+
+    @functools.cached_property
+    def _whole(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The camera-frame cloud and its colours where the sample renders (moved once)."""
+        return self.points.to(self.render_device), self.colors.to(self.render_device)
+
     def within_bound(self, motions: torch.Tensor) -> torch.Tensor:
         """Which motions (B, 6) the crop is exact for."""
         if self.bound is None:
@@ -144,13 +167,14 @@ class TestSample:
 
     def render(self, motions, backend: Backend = "auto") -> tuple[torch.Tensor, torch.Tensor]:
         """``O(V, alpha)`` for motions (B, 6): images (B, C, H, W) and depth (B, H, W)."""
-        device = self.colors.device
-        motions = torch.as_tensor(motions, dtype=torch.float64, device=device).reshape(-1, 6)
-        inside = self.within_bound(motions).to(device)
+        device = self.render_device
+        # On the CPU, where motions are drawn: deciding the crop then never waits for a GPU's queue.
+        motions = torch.as_tensor(motions, dtype=torch.float64).reshape(-1, 6).cpu()
+        inside = self.within_bound(motions)
         if bool(inside.all()):
             return self._project(self.crop_points, self.crop_colors, self.crop_rank, motions, backend)
         if not bool(inside.any()):
-            return self._project(self.points, self.colors, None, motions, backend)
+            return self._project(*self._whole, None, motions, backend)
         images = torch.empty(
             len(motions),
             self.colors.shape[1],
@@ -161,7 +185,8 @@ class TestSample:
         )
         depth = torch.empty(len(motions), self.height, self.width, dtype=torch.float64, device=device)
         crop = self._project(self.crop_points, self.crop_colors, self.crop_rank, motions[inside], backend)
-        full = self._project(self.points, self.colors, None, motions[~inside], backend)
+        full = self._project(*self._whole, None, motions[~inside], backend)
+        inside = inside.to(device)
         (images[inside], depth[inside]), (images[~inside], depth[~inside]) = crop, full
         return images, depth
 

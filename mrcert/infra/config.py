@@ -86,7 +86,7 @@ RULES: dict[str, Rule] = {
         lambda v: v is None or isinstance(v, list) and len(v) > 0 and all(_axis(a) for a in v),
         f"a non-empty list of axes from {', '.join(AXES)} (or null for all)",
     ),
-    "backend": (lambda v: v in ("auto", "numba", "torch"), "one of auto, numba, torch"),
+    "backend": (lambda v: v in ("auto", "numba", "torch", "triton"), "one of auto, numba, torch, triton"),
     "decision": (lambda v: v in ("predict", "vote"), "predict or vote"),
     "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**32, "an integer in [0, 2**32)"),
     "room_density": (_positive, "a finite number > 0 (metres)"),

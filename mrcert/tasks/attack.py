@@ -53,7 +53,8 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         sample = ev.samples[i]
         motions = attack_motions(cfg.attack, axis, int(cfg.seed), i)
         zero = torch.zeros(1, 6, dtype=torch.float64)
-        images, _ = sample.render(torch.cat([zero, motions]), backend=t.backend)
+        render = ev.render(sample)
+        images = render(torch.cat([zero, motions]))
         logits = ev.model(images.to(ev.device)).cpu()
         preds = predicted(logits)
         others = logits.clone()
@@ -71,7 +72,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "smoothed_failure": "-",
         }
         if t.smoothed:
-            render, votes = ev.render(sample), []
+            votes = []
             for k, m in enumerate(motions):
                 counts = ev.smoothed.sample_counts(render, int(t.n), image_generator(cfg.seed, i, "predict", k), m)
                 votes.append(counts[sample.label])

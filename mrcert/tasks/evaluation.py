@@ -52,7 +52,9 @@ class Evaluation:
         return self.smoothed.method
 
     def render(self, sample: TestSample) -> Render:
-        return sample.renderer(self.backend)
+        """The sample's renderer, on the device of the model unless the numba back end (a CPU
+        kernel) is asked for: on a GPU the images are then made where they are classified."""
+        return (sample if self.backend == "numba" else sample.to(self.device)).renderer(self.backend)
 
 
 def prepare(cfg: DictConfig) -> Evaluation:
