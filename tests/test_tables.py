@@ -558,3 +558,19 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     assert pixel["seconds / image"] == pws.seconds.mean()
     fig = side_by_side.figure(df)
     assert len(fig.axes[0].lines) == 2  # motion smoothing's curve and pixel-wise smoothing's point
+
+
+def test_the_page_states_which_test_images_each_tasks_columns_cover():
+    """The quick reproduction attacks every 2nd test image (its 8-hour budget) and certifies and
+    smooths them all: the page says so; a demo's columns all cover one image in 12."""
+    from mrcert.reporting.cells import compose_config
+    from mrcert.reporting.results_page import _shares
+
+    def shares(experiment):
+        tasks = ("certify", "smooth", "attack")
+        return _shares({t: compose_config([f"experiment={experiment}", f"task={t}", "motion=tz"]) for t in tasks})
+
+    assert shares("reproduce_quick") == (
+        "Columns cover certify: every test image; smooth: every test image; attack: one test image in 2."
+    )
+    assert shares("demo") == "Every column covers one test image in 12, the same images in each."

@@ -230,8 +230,16 @@ def setup(src: Source, jobs: list[Job]) -> dict | None:
         "k": a.attack.k,
         "attack": ATTACK_WORDS.get(str(a.attack.name), str(a.attack.name)),
         "attack_n": a.task.n,
-        "share": _share(int(a.task.skip)),
+        "share": _shares({"certify": c, "smooth": s, "attack": a}),
     }
+
+
+def _shares(configs: dict) -> str:
+    """Which test images each task's columns cover: one phrase when all cover the same."""
+    shares = {task: _share(int(cfg.task.skip)) for task, cfg in configs.items()}
+    if len(set(shares.values())) == 1:
+        return f"Every column covers {next(iter(shares.values()))}, the same images in each."
+    return "Columns cover " + "; ".join(f"{task}: {share}" for task, share in shares.items()) + "."
 
 
 def separation(cfg) -> str:
