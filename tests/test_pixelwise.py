@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
+from scipy.stats import norm
 
 from mrcert.__main__ import run_task
 from mrcert.core.methods import build_method
@@ -184,9 +185,11 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     )
     metrics = run_task(cfg, tmp_path / "c")
     log = read_log(tmp_path / "c" / "certify.tsv")
-    assert len(log) == 2 and set(log.radius) <= {0.0, 0.01} and (log.n == 3 * 40).all()
-    assert (log.projected == 3).all()  # each frame rendered once, for its votes and its bounds
-    assert metrics["mean_samples"] == 120
+    # With pixel sigma 0.25 and n = 40 no frame's radius can cover a 1 cm piece of tz: each image
+    # stops after its first frame (n = 40 estimation samples), and nothing is certified.
+    assert len(log) == 2 and set(log.radius) == {0.0} and (log.n == 40).all()
+    assert (log.projected == 3).all()  # each frame rendered once, for the bounds and the votes
+    assert metrics["mean_samples"] == 40
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     runs = mlflow.search_runs(search_all_experiments=True, filter_string="attributes.status = 'FINISHED'")
     certify = runs[runs["tags.mrcert.task"] == "certify"]
@@ -267,3 +270,48 @@ def test_a_pixelwise_run_reports_certified_accuracy_for_its_interval():
     motion = compose_cfg(["task=certify"])
     log["radius"] = [float(motion.motion.radius)] * 2 + [0.0, 0.0]
     assert TASKS["certify"].summarize(log, motion)["certified_accuracy"] == 0.5  # motion smoothing: at motion.radius
+
+
+class ScriptedFrames:
+    """Stands in for the smoothed classifier: frame k certifies ``script[k]`` (class, radius)."""
+
+    def __init__(self, script):
+        self.script, self.calls = script, 0
+
+    def certify_view(self, view, n0, n, alpha, generator, center=None):
+        from mrcert.core.method import Certificate
+
+        prediction, radius = self.script[self.calls]
+        self.calls += 1
+        return Certificate(prediction, radius, n, 0.99, n)
+
+
+def _scene_render(half_width):
+    from mrcert.data.samples import TestSample
+
+    points, colors = occluding_scene()
+    bound = PixelwiseSmoothing("tz", 0.25, half_width, 3).crop_bound(1.0)
+    return TestSample.build(points.numpy(), colors.numpy(), PAPER_K, H, W, label=0, bound=bound).renderer()
+
+
+@pytest.mark.parametrize(
+    ("sigma", "script", "frames_run", "radius", "prediction"),
+    [
+        (0.25, [(0, 1e9)] * 5, 1, 0.0, 0),  # no frame's radius (at most ~0.28) can cover a piece: stop at once
+        (1000.0, [(0, 1e9)] * 5, 5, 0.02, 0),  # every frame certifies: the interval
+        (1000.0, [(0, 1e9), (1, 1e9)] + [(0, 1e9)] * 3, 2, 0.0, -1),  # two classes: stop at the second frame
+        (1000.0, [(0, 1e9), (-1, 0.0)] + [(0, 1e9)] * 3, 2, 0.0, -1),  # an abstention: stop there
+    ],
+)
+def test_frames_are_spent_only_while_the_interval_can_still_be_certified(sigma, script, frames_run, radius, prediction):
+    """The bounds come first; each frame is certified only while the interval can still be (one
+    class so far, and every piece coverable with the largest radius n allows at the frames not
+    yet certified); the log's n counts the frames actually certified."""
+    method = PixelwiseSmoothing("tz", sigma, 0.02, 5)
+    frames = ScriptedFrames(script)
+    cert = method.certify(frames, _scene_render(0.02), 8, 40, 0.01, torch.Generator().manual_seed(0))
+    assert frames.calls == frames_run and cert.n == 40 * frames_run
+    assert cert.radius == radius and cert.prediction == prediction
+    # All n votes for one class: the one-sided Clopper-Pearson bound is (alpha / frames) ** (1 / n).
+    closed_form = 0.25 * norm.ppf((0.01 / 5) ** (1 / 40))
+    assert PixelwiseSmoothing("tz", 0.25, 0.02, 5).reach(40, 0.01) == pytest.approx(closed_form, rel=1e-9)

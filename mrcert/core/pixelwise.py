@@ -24,6 +24,7 @@ from scipy.stats import norm
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
 from mrcert.core.method import ABSTAIN, Certificate, Method, single_axis
+from mrcert.core.sequential import lower_confidence_bound
 from mrcert.core.smoothing import SmoothingDistribution, image_generator
 from mrcert.errors import ConfigError, MrcertError
 
@@ -254,9 +255,17 @@ def _bounds_kernel(
 def interval_certified(classes: np.ndarray, radii: np.ndarray, left: np.ndarray, right: np.ndarray) -> bool:
     """Whether the frames' certificates cover the whole interval: one class at every frame (no
     abstention) and, in every piece, an end frame whose certified radius exceeds its bound."""
-    classes, radii = np.asarray(classes), np.asarray(radii)
-    if len(classes) != len(left) + 1 or (classes < 0).any() or (classes != classes[0]).any():
+    return len(classes) == len(left) + 1 and interval_coverable(classes, radii, left, right, 0.0)
+
+
+def interval_coverable(classes, radii, left: np.ndarray, right: np.ndarray, reach: float) -> bool:
+    """Whether the interval can still be certified once its first ``len(classes)`` frames are:
+    they agree on one class (no abstention) and every piece has an end whose radius exceeds its
+    bound, a frame not yet certified counting as ``reach``, the largest radius one can get."""
+    classes = np.asarray(classes)
+    if len(classes) and ((classes < 0).any() or (classes != classes[0]).any()):
         return False
+    radii = np.concatenate([np.asarray(radii, np.float64), np.full(len(left) + 1 - len(classes), reach)])
     return bool(np.all((left < radii[:-1]) | (right < radii[1:])))
 
 
@@ -335,27 +344,39 @@ class PixelwiseSmoothing(Method):
         """The interval's motions: motion smoothing's bound for one standard deviation of ``half_width``."""
         return SmoothingDistribution((self.axis,), (self.half_width,)).crop_bound(1.0)
 
+    def reach(self, n: int, alpha: float) -> float:
+        """The largest radius a frame can be certified for: all ``n`` votes for one class, at
+        ``alpha / frames``. A piece whose bounds both reach it can never be covered."""
+        return self.radius(lower_confidence_bound(n, n, alpha / self.frames))
+
     def certify(self, smoothed, render, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
-        """Every frame certified at ``alpha / frames``; the interval when :func:`interval_certified`."""
+        """The frames certified in order at ``alpha / frames`` each, stopping at the first after
+        which the interval can no longer be certified (:func:`interval_coverable`: the bounds are
+        computed first, so an interval no frame's radius can cover stops after its first frame);
+        the interval when every frame is certified and :func:`interval_certified`. Stopping early
+        only leaves tests out, so all the frames certified hold together with probability at
+        least ``1 - alpha``; ``n`` counts the estimation samples of the frames certified."""
         sample = getattr(render, "sample", None)
         if sample is None:
             raise MrcertError("pixel-wise certification needs a test sample's renderer (TestSample.renderer())")
         frames = frame_motions(self.axis, self.half_width, self.frames)
         images = render(frames)  # each frame projected once, for its votes and for the bounds
-        certs = [
-            smoothed.certify_view(lambda _frame, k=k: images[k : k + 1], n0, n, alpha / self.frames, generator, f)
-            for k, f in enumerate(frames)
-        ]
         points, colors, rank = sample.cloud_for(frames)
         left, right = piece_bounds(points, colors, sample.K, self.axis, frames, images, sample.background, rank=rank)
-        classes = np.array([c.prediction for c in certs])
-        radii = np.array([c.radius for c in certs])
-        agreed = bool((classes >= 0).all() and (classes == classes[0]).all())
+        reach = self.reach(n, alpha)
+        certs: list[Certificate] = []
+        for k, f in enumerate(frames):
+            view = lambda _frame, k=k: images[k : k + 1]  # noqa: E731
+            certs.append(smoothed.certify_view(view, n0, n, alpha / self.frames, generator, f))
+            classes, radii = [c.prediction for c in certs], [c.radius for c in certs]
+            if not interval_coverable(classes, radii, left, right, reach):
+                break
+        agreed = min(classes) >= 0 and len(set(classes)) == 1
         worst = min(certs, key=lambda c: c.p_a_lower)
         return Certificate(
-            int(classes[0]) if agreed else ABSTAIN,
+            classes[0] if agreed else ABSTAIN,
             self.half_width if interval_certified(classes, radii, left, right) else 0.0,
             worst.count_a,
             worst.p_a_lower,
-            n * self.frames,
+            n * len(certs),
         )

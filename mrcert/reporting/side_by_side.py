@@ -24,11 +24,12 @@ MOTION_EXPERIMENT = "reproduce_quick"
 """Where the motion-augmented models' certify runs come from (the same views, axis and model)."""
 
 
-def _costs(log: pd.DataFrame, frames: int) -> dict[str, float]:
+def _costs(log: pd.DataFrame, n: int) -> dict[str, float]:
     """Per image: camera poses projected (the log's ``projected``; a log written before it was
     recorded projects each of its ``n0 + n`` samples once, one frame) and forward passes
-    (``n0`` per frame plus the ``n`` estimation samples of all frames)."""
-    passes = log["n"] + log["n0"] * frames
+    (``n0`` per frame certified plus the log's ``n``, the estimation samples of those frames,
+    ``n`` per frame: pixel-wise smoothing stops at the first frame that rules the interval out)."""
+    passes = log["n"] + log["n0"] * np.ceil(log["n"] / n).clip(lower=1)
     projected = log["projected"] if "projected" in log and log["projected"].notna().all() else passes
     return {
         "poses projected / image": float(projected.mean()),
@@ -81,7 +82,7 @@ def runs(src: Source, experiment: str = EXPERIMENT) -> pd.DataFrame:
                     "method": f"motion smoothing (sigma {float(motion.cfg.motion.sigma):g} {unit(axis)})",
                     "frames": np.nan,
                     "certified accuracy": certify_log.certified_accuracy(same, half_width),
-                    **_costs(same, 1),
+                    **_costs(same, int(motion.cfg.task.n)),
                     "run_id": motion.run_ids[0],
                     "log": same,
                 }
@@ -92,7 +93,7 @@ def runs(src: Source, experiment: str = EXPERIMENT) -> pd.DataFrame:
                 "method": f"pixel-wise smoothing (sigma {float(cfg.method.sigma):g})",
                 "frames": frames,
                 "certified accuracy": certify_log.certified_accuracy(log, half_width),
-                **_costs(log, frames),
+                **_costs(log, int(cfg.task.n)),
                 "run_id": pixelwise.run_ids[0],
                 "log": log,
             }
