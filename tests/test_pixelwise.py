@@ -315,3 +315,55 @@ def test_frames_are_spent_only_while_the_interval_can_still_be_certified(sigma, 
     # All n votes for one class: the one-sided Clopper-Pearson bound is (alpha / frames) ** (1 / n).
     closed_form = 0.25 * norm.ppf((0.01 / 5) ** (1 / 40))
     assert PixelwiseSmoothing("tz", 0.25, 0.02, 5).reach(40, 0.01) == pytest.approx(closed_form, rel=1e-9)
+
+
+def _tied_occluding_scene(near_plane: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """The occluding scene plus exact copies of some points in other colours (the tie rule
+    decides which shows) and, with ``near_plane``, points a few millimetres in front of the
+    camera that a motion along z carries across the camera plane."""
+    rng = np.random.default_rng(7)
+    points, colors = occluding_scene()
+    copies = torch.from_numpy(rng.choice(len(points), 5000, replace=False))
+    points, colors = torch.cat([points, points[copies]]), torch.cat([colors, 1 - colors[copies]])
+    if near_plane:
+        z = rng.uniform(0.0005, 0.004, 12)
+        near = np.column_stack([rng.uniform(-0.15, 0.15, 12) * z, rng.uniform(-0.1, 0.1, 12) * z, z])
+        points = torch.cat([points, torch.from_numpy(near)])
+        colors = torch.cat([colors, torch.from_numpy(rng.uniform(0, 1, (12, 3)).astype(np.float32))])
+    return points, colors
+
+
+@pytest.mark.parametrize(
+    ("axis", "half_width", "near_plane"),
+    [("tx", 0.002, False), ("ty", 0.002, False), ("tz", 0.002, False), ("tz", 0.006, True)]
+    + [(axis, 0.001, False) for axis in ("rx", "ry", "rz")],
+)
+def test_the_certifying_path_bounds_every_pose_of_small_pieces_on_every_axis(axis, half_width, near_plane):
+    """What certification renders and bounds -- a test sample cropped for the interval, its frames
+    drawn by its renderer (the crop, its points' ranks in the whole cloud), the bounds from
+    ``cloud_for`` -- on millimetre pieces of all six axes, with exact ties, and points crossing
+    the camera plane: every dense pose, rendered the same way, lies within both of its piece's
+    bounds."""
+    from mrcert.data.samples import TestSample
+
+    points, colors = _tied_occluding_scene(near_plane)
+    method = PixelwiseSmoothing(axis, 0.25, half_width, 4)
+    sample = TestSample.build(points.numpy(), colors.numpy(), PAPER_K, H, W, label=0, bound=method.crop_bound(1.0))
+    render = sample.renderer()
+    frames = frame_motions(axis, half_width, 4)
+    images = render(frames).double()
+    crop, crop_colors, rank = sample.cloud_for(frames)
+    assert len(crop) < len(points)  # the crop is what is rendered and bounded
+    left, right, left_map, right_map = piece_bounds(
+        crop, crop_colors, sample.K, axis, frames, images, sample.background, per_pixel=True, rank=rank
+    )
+    for k, motions in dense_views(frames, per_piece=40):
+        views = render(motions).double()
+        # pixel by pixel (a pixel the bound misses shows even where the l2 sum has room) ...
+        assert (((views - images[k]) ** 2).sum(1) <= torch.from_numpy(left_map[k]) + 1e-12).all()
+        assert (((views - images[k + 1]) ** 2).sum(1) <= torch.from_numpy(right_map[k]) + 1e-12).all()
+        # ... and as the l2 distances certification compares with the frames' radii
+        assert ((views - images[k]).flatten(1).norm(dim=1) <= left[k]).all()
+        assert ((views - images[k + 1]).flatten(1).norm(dim=1) <= right[k]).all()
+    if near_plane:  # the points in front of the camera do cross its plane within the interval
+        assert ((points[:, 2] > 0) & (points[:, 2] < half_width)).sum() == 12
