@@ -1,5 +1,6 @@
 """Every option of every config group composes and validates; bad values are named."""
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
@@ -67,10 +68,19 @@ def test_every_option_composes_to_its_own_values_and_validates(group, option):
     assert OmegaConf.select(cfg, "hydra.run.dir").startswith(str(cfg.paths.outputs))
 
 
+def _defaults_order() -> list[str]:
+    """The config groups in the order conf/config.yaml's defaults list composes them."""
+    entries = OmegaConf.load(CONF_DIR / "config.yaml").defaults
+    groups = [next(iter(e)) if isinstance(e, Mapping) else str(e) for e in entries]
+    return [g.removeprefix("optional ") for g in groups if g != "_self_"]
+
+
+DEFAULTS_ORDER = _defaults_order()
+
+
 def later_overrides(cfg, group: str, package: str) -> set[str]:
     """Keys (relative to ``package``) that options composed after ``group`` set."""
-    order = ["task", "data", "profile", "train", "train_profile", "data_profile", "motion", "model", "attack",
-             "tracking", "experiment", "task_experiment"]  # fmt: skip
+    order = DEFAULTS_ORDER
     keys: set[str] = set()
     for later in order[order.index(group) + 1 :] if group in order else []:
         choice = cfg.hydra.runtime.choices.get(later)
@@ -291,3 +301,20 @@ def test_table_links_follow_the_ui_port(monkeypatch):
     assert shown.stdout.strip() == "http://127.0.0.1:5123"
     monkeypatch.setenv("MRCERT_UI_URL", shown.stdout.strip())
     assert compose_cfg(["task=tables"]).task.ui_url == "http://127.0.0.1:5123"
+
+
+def test_the_defaults_order_is_read_from_the_root_config():
+    """The order the overlay check relies on is the root config's, method and hydra included."""
+    assert DEFAULTS_ORDER[:3] == ["task", "data", "profile"] and DEFAULTS_ORDER[-1] == "task_experiment"
+    assert DEFAULTS_ORDER.index("motion") < DEFAULTS_ORDER.index("method") < DEFAULTS_ORDER.index("model")
+
+
+def test_every_generated_data_set_has_its_quick_settings():
+    """profile=quick coarsens a generated data set through data_profile/<data>_quick.yaml, an
+    optional overlay: a generated data set without one would run the paper's settings under
+    profile=quick without a word. Data read from files has nothing to coarsen."""
+    from mrcert.data.synthetic import FAMILIES
+
+    generated = [p.stem for p in (CONF_DIR / "data").glob("*.yaml") if OmegaConf.load(p).get("source") in FAMILIES]
+    assert generated, "no generated data set found"
+    assert [d for d in generated if not (CONF_DIR / "data_profile" / f"{d}_quick.yaml").is_file()] == []

@@ -465,8 +465,8 @@ def test_the_tasks_render_several_batches_at_once(trained, tmp_path):
 
     ev = prepare(tiny_cfg(["task=certify", f"model.checkpoint={best(trained)}"], tmp_path))
     votes = ev.smoothed.votes
-    assert votes.render_batch == render_batch(votes.batch_size, ev.bundle.height, ev.bundle.width)
-    assert votes.render_batch > votes.batch_size
+    assert (ev.bundle.height, ev.bundle.width, votes.batch_size) == (90, 160, 16)  # a CPU's auto batch
+    assert votes.render_batch == 144  # 9 model batches: 2.07M pixels, within the 2**21 budget
 
 
 def test_the_tasks_inference_path_predicts_the_classes_of_the_eager_model(trained, tmp_path):
