@@ -187,7 +187,7 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     log = read_log(tmp_path / "c" / "certify.tsv")
     # With pixel sigma 0.25 and n = 40 no frame's radius can cover a 1 cm piece of tz: each image
     # stops after its first frame (n = 40 estimation samples), and nothing is certified.
-    assert len(log) == 2 and set(log.radius) == {0.0} and (log.n == 40).all()
+    assert len(log) == 2 and set(log.radius) == {0.0} and (log.n == 40).all() and (log.margin < 0).all()
     assert (log.projected == 3).all()  # each frame rendered once, for the bounds and the votes
     assert metrics["mean_samples"] == 40
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
@@ -312,6 +312,15 @@ def test_frames_are_spent_only_while_the_interval_can_still_be_certified(sigma, 
     cert = method.certify(frames, _scene_render(0.02), 8, 40, 0.01, torch.Generator().manual_seed(0))
     assert frames.calls == frames_run and cert.n == 40 * frames_run
     assert cert.radius == radius and cert.prediction == prediction
+    # The log's margin: the worst piece's better end, its radius (the reach for frames not
+    # certified) less its bound; negative exactly when some piece cannot be covered.
+    render = _scene_render(0.02)
+    motions = frame_motions("tz", 0.02, 5)
+    left, right = piece_bounds(*render.sample.cloud_for(motions)[:2], PAPER_K, "tz", motions, render(motions), 1.0,
+                               rank=render.sample.cloud_for(motions)[2])  # fmt: skip
+    radii = np.array([r for _, r in script[:frames_run]] + [method.reach(40, 0.01)] * (5 - frames_run))
+    assert cert.margin == pytest.approx(np.min(np.maximum(radii[:-1] - left, radii[1:] - right)))
+    assert (cert.margin > 0) == (sigma > 1)
     # All n votes for one class: the one-sided Clopper-Pearson bound is (alpha / frames) ** (1 / n).
     closed_form = 0.25 * norm.ppf((0.01 / 5) ** (1 / 40))
     assert PixelwiseSmoothing("tz", 0.25, 0.02, 5).reach(40, 0.01) == pytest.approx(closed_form, rel=1e-9)

@@ -44,6 +44,10 @@ class Certificate:
     count_a: int
     p_a_lower: float
     n: int = 0  # estimation samples drawn (the sequential mode may stop early; several frames add up)
+    # How far a method's own condition on its views is from holding (pixel-wise smoothing: the
+    # smallest, over pieces, of the better end frame's radius less its bound; negative on the
+    # piece an interval failed on); NaN for a method that has none.
+    margin: float = float("nan")
 
 
 def single_axis(motion: DictConfig) -> str:

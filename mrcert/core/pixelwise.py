@@ -265,8 +265,14 @@ def interval_coverable(classes, radii, left: np.ndarray, right: np.ndarray, reac
     classes = np.asarray(classes)
     if len(classes) and ((classes < 0).any() or (classes != classes[0]).any()):
         return False
-    radii = np.concatenate([np.asarray(radii, np.float64), np.full(len(left) + 1 - len(classes), reach)])
-    return bool(np.all((left < radii[:-1]) | (right < radii[1:])))
+    return piece_margin(radii, left, right, reach) > 0
+
+
+def piece_margin(radii, left: np.ndarray, right: np.ndarray, reach: float) -> float:
+    """The smallest, over pieces, of the better end's radius less its bound (positive: every
+    piece covered), the frames after the ``len(radii)`` certified ones counting as ``reach``."""
+    radii = np.concatenate([np.asarray(radii, np.float64), np.full(len(left) + 1 - len(radii), reach)])
+    return float(np.min(np.maximum(radii[:-1] - left, radii[1:] - right)))
 
 
 @dataclass(frozen=True)
@@ -379,4 +385,5 @@ class PixelwiseSmoothing(Method):
             worst.count_a,
             worst.p_a_lower,
             n * len(certs),
+            piece_margin(radii, left, right, reach),
         )

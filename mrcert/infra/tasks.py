@@ -131,7 +131,18 @@ TASKS: dict[str, Task] = {
             EVALUATION, ignore_when=(MOTION_SMOOTHING, ("task.sequential", False, "task.look"))
         ),  # fixed n: no looks
         log="certify.tsv",
-        columns=(*CERTIFY_COLUMNS, "count_a", "n0", "n", "p_a_lower", "sigma", "axis", "seconds", "projected"),
+        columns=(
+            *CERTIFY_COLUMNS,
+            "count_a",
+            "n0",
+            "n",
+            "p_a_lower",
+            "sigma",
+            "axis",
+            "seconds",
+            "projected",
+            "margin",
+        ),
         metrics="mrcert.reporting.metrics:certify",
         headline=("certified_accuracy", "clean_accuracy", "mean_samples"),
         title=_model_title,

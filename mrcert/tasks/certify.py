@@ -58,6 +58,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "n0": int(t.n0),
             "n": cert.n,
             "projected": render.projected,  # camera poses rendered for this certificate
+            "margin": float(cert.margin),
             "p_a_lower": float(cert.p_a_lower),
             "sigma": "+".join(map(repr, dist.sigmas)),
             "axis": dist.name,
