@@ -64,13 +64,17 @@ def test_certify_on_cuda_gives_the_cpu_rows_up_to_model_rounding():
         assert gpu.prediction == cpu.prediction and abs(gpu.count_a - cpu.count_a) <= 10
 
 
-def test_overlapped_rendering_on_cuda_gives_the_same_votes():
+@pytest.mark.parametrize("renders_on", ["cpu", "cuda"])
+def test_overlapped_rendering_on_cuda_gives_the_same_votes(renders_on):
+    """Rendering the next batch beside the model (on the GPU: on a stream of its own, which the
+    model's stream waits for) gives the votes of rendering and classifying in turn."""
     from mrcert.data.samples import TestSample
 
     rng = np.random.default_rng(4)
     pts, cols = random_cloud(rng, n=50_000)
     dist = SmoothingDistribution(("rz",), (0.122173,))
     sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
+    sample = sample.to(renders_on)
     model = _classifier().cuda()
     votes = [
         SmoothedClassifier(model, dist, 5, 128, "cuda", overlap=overlap).sample_counts(
