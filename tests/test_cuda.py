@@ -66,8 +66,8 @@ def test_certify_on_cuda_gives_the_cpu_rows_up_to_model_rounding():
 
 @pytest.mark.parametrize("renders_on", ["cpu", "cuda"])
 def test_overlapped_rendering_on_cuda_gives_the_same_votes(renders_on):
-    """Rendering the next batch beside the model (on the GPU: on a stream of its own, which the
-    model's stream waits for) gives the votes of rendering and classifying in turn."""
+    """Rendering the next batch beside the model (the sample on the CPU, or on the GPU) gives the
+    votes of rendering and classifying in turn."""
     from mrcert.data.samples import TestSample
 
     rng = np.random.default_rng(4)

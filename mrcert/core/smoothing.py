@@ -187,9 +187,7 @@ class VoteCounter:
     once (a multiple of ``batch_size``, default ``batch_size``), since each call to a render
     costs a fixed amount besides its images (:func:`~mrcert.infra.runtime.render_batch`).
     With ``overlap``, a worker thread renders the next ``render_batch`` inputs while the model
-    classifies the current ones (the projection kernel and torch both release the GIL); on a
-    GPU it renders on a stream of its own, so that the projection's kernels run beside the
-    model's, and the model's stream waits for each batch's images before reading them.
+    classifies the current ones (the projection kernel and torch both release the GIL).
     ``timings`` adds up the seconds spent waiting for renders and in the model (for benchmarks).
     The votes do not depend on either size: each image is its input's, whatever it is drawn with.
     """
@@ -215,15 +213,14 @@ class VoteCounter:
         """Votes over ``render(inputs)``, in batches (``inputs``: motions, or sample indices)."""
         parts = [inputs[s : s + self.render_batch] for s in range(0, len(inputs), self.render_batch)]
         votes = np.zeros(self.num_classes, np.int64)
-        side = _side_stream(self.device) if self.overlap else None
         with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
-            pending = pool.submit(_render_on, side, render, parts[0]) if pool and parts else None
+            pending = pool.submit(render, parts[0]) if pool and parts else None
             for k, part in enumerate(parts):
                 start = time.perf_counter()
                 if pool:
-                    images = _ready(side, *pending.result())
+                    images = pending.result()
                     if k + 1 < len(parts):
-                        pending = pool.submit(_render_on, side, render, parts[k + 1])
+                        pending = pool.submit(render, parts[k + 1])
                 else:
                     images = render(part)
                 rendered = time.perf_counter()
@@ -234,39 +231,6 @@ class VoteCounter:
                 self.timings["render"] += rendered - start
                 self.timings["model"] += time.perf_counter() - rendered
         return votes
-
-
-def _side_stream(device) -> torch.cuda.Stream | None:
-    """A CUDA stream for rendering beside the model, after everything the current stream has
-    queued (a test sample's crop copied to the GPU, say); None off CUDA."""
-    device = torch.device(device)
-    if device.type != "cuda":
-        return None
-    side = torch.cuda.Stream(device)
-    side.wait_stream(torch.cuda.current_stream(device))
-    return side
-
-
-def _render_on(side, render, part):
-    """``render(part)`` on the stream ``side`` (when given), with an event marking its end."""
-    if side is None:
-        return render(part), None
-    with torch.cuda.stream(side):
-        images = render(part)
-        done = torch.cuda.Event()
-        done.record(side)
-    return images, done
-
-
-def _ready(side, images, done):
-    """Images rendered on ``side``, safe to read on the current stream: it waits for them, and
-    the allocator keeps their memory until the current stream is done with it."""
-    if done is not None:
-        current = torch.cuda.current_stream(side.device)
-        current.wait_event(done)
-        if images.is_cuda:
-            images.record_stream(current)
-    return images
 
 
 class SmoothedClassifier:
