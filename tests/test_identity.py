@@ -89,8 +89,8 @@ def defines_the_result(task: str, cfg: dict, key: str) -> bool:
             return key == "task.name"
         vanilla = cfg["model"]["variant"] == "vanilla"
         pixel_noise = cfg["method"]["name"] == "pixelwise"  # one pixel-noise model serves every axis
-        return not (under("model.checkpoint", "attack", "method.certify") or (vanilla or pixel_noise) and under("motion")
-                    or vanilla and under("method"))  # fmt: skip
+        unseen = under("motion") and (vanilla or pixel_noise) or under("method") and vanilla
+        return not (under("model.checkpoint", "attack", "method.certify") or unseen)
     # certify, smooth, attack: an evaluation of a trained model (named by its checkpoint)
     if under("train", *HOW_IT_EVALUATES) or (under("attack") and task != "attack"):
         return False
