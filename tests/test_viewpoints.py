@@ -135,7 +135,7 @@ def test_occlusion_is_the_fall_of_the_class_probability_under_each_grey_square(s
     assert np.abs(occlusion(model, grey, 0, 16, cpu, 16)).max() < 1e-6
     image = load(cfg.data).test().images[0]
     falls = occlusion(model, image, 2, 90, cpu, 7)  # squares of the image's height: one row of places
-    probability = lambda x: torch.softmax(model(torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255), 1)[0, 2]
+    probability = lambda x: torch.softmax(model(torch.tensor(x).permute(2, 0, 1)[None].float() / 255), 1)[0, 2]
     covered = image.copy()
     covered[:, 0:90] = 128
     with torch.inference_mode():

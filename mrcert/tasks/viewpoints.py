@@ -69,7 +69,7 @@ def occlusion(
     step = max(patch // 2, 1)
     rows = sorted({*range(0, height - patch + 1, step), height - patch})
     cols = sorted({*range(0, width - patch + 1, step), width - patch})
-    x = torch.from_numpy(image).permute(2, 0, 1)
+    x = torch.tensor(image).permute(2, 0, 1)  # a copy: the image may be a read-only view of the cache
     base = torch.softmax(model(to_device(x[None], device)), 1)[0, label].item()
     places = [(r, c) for r in rows for c in cols]
     falls = []
