@@ -27,6 +27,7 @@ images are identical to the bit:
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import threading
 import weakref
@@ -97,8 +98,7 @@ def project(
     K = torch.as_tensor(K, dtype=torch.float64)
     _check_inputs(points, colors, K, motions, height, width)
     if backend == "auto":
-        gpu = "triton" if importlib.util.find_spec("triton") else "torch"
-        backend = {"cpu": "numba", "cuda": gpu}.get(device.type, "torch")
+        backend = "numba" if device.type == "cpu" else _cuda_backend() if device.type == "cuda" else "torch"
     if backend not in ("numba", "torch", "triton"):
         raise ValueError(f"unknown projection backend {backend!r}; allowed: auto, numba, torch, triton")
 
@@ -126,6 +126,13 @@ def project(
     winner, depth = _zbuffer_torch(points.to(torch.float64), rank, R, t, intr, height, width, chunk_elements)
     images = _gather_colors(colors, winner, background, height, width)
     return images, depth.view(-1, height, width)
+
+
+@functools.cache
+def _cuda_backend() -> str:
+    """What ``auto`` renders with on CUDA: triton where Triton is installed, else torch (looked
+    up once, not on every render)."""
+    return "triton" if importlib.util.find_spec("triton") else "torch"
 
 
 def rotations(motions: torch.Tensor) -> torch.Tensor:

@@ -137,15 +137,14 @@ def render(cloud, R: torch.Tensor, t: torch.Tensor, intr: tuple, background: flo
     R, t = R.to(device, torch.float64).contiguous(), t.to(device, torch.float64).contiguous()
     step = max(1, min(65535, MAX_PIXELS // hw))  # the grid's second axis holds at most 65535 motions
     blocks = cloud.center.shape[0]
-    for start in range(0, b, step):
+    for start in range(0, b if n else 0, step):  # no points: every pixel is background
         stop = min(b, start + step)
         parts = (zbits[start:stop], ranks[start:stop], images[start:stop])
         for stage in range(3):
-            if n:
-                _zbuffer[(blocks, stop - start)](
-                    cloud.points[0], cloud.points[1], cloud.points[2], cloud.rank, cloud.colors,
-                    cloud.center, cloud.half, R[start:stop], t[start:stop], intrinsics, *parts,
-                    n, height, width, PASS=stage, BLOCK=BLOCK, C=c, enable_fp_fusion=False,
-                )  # fmt: skip
+            _zbuffer[(blocks, stop - start)](
+                cloud.points[0], cloud.points[1], cloud.points[2], cloud.rank, cloud.colors,
+                cloud.center, cloud.half, R[start:stop], t[start:stop], intrinsics, *parts,
+                n, height, width, PASS=stage, BLOCK=BLOCK, C=c, enable_fp_fusion=False,
+            )  # fmt: skip
     depth = zbits.view(torch.float64)
     return images.view(b, c, height, width), depth.view(b, height, width)
