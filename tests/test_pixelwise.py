@@ -316,7 +316,7 @@ def test_frames_are_spent_only_while_the_interval_can_still_be_certified(sigma, 
     # certified) less its bound; negative exactly when some piece cannot be covered.
     render = _scene_render(0.02)
     motions = frame_motions("tz", 0.02, 5)
-    points, colors, rank = render.sample.cloud_for(motions)
+    points, colors, rank = render.cloud_for(motions)
     left, right = piece_bounds(points, colors, PAPER_K, "tz", motions, render(motions), 1.0, rank=rank)
     radii = np.array([r for _, r in script[:frames_run]] + [method.reach(40, 0.01)] * (5 - frames_run))
     assert cert.margin == pytest.approx(np.min(np.maximum(radii[:-1] - left, radii[1:] - right)))

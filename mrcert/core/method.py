@@ -7,11 +7,14 @@ every task: ``task=train`` renders an augmented model's training images under
 :class:`~mrcert.core.smoothing.SmoothedClassifier` counts votes over :meth:`Method.views`
 (PREDICT, the attack) and certifies with :meth:`Method.certify`. Two implementations:
 camera motion smoothing (:class:`~mrcert.core.smoothing.SmoothingDistribution`, ``method=motion``)
-and pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing``, ``method=pixelwise``);
-:data:`mrcert.core.methods.METHODS` names them. A new method is a class here, a line there,
-a schema in ``mrcert/infra/schema.py`` and its YAML in ``conf/method/``; what it refuses (its
-parameters, a motion or a task mode it cannot serve) it says in :meth:`Method.from_config`,
-which config validation calls before any run opens.
+and pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing`, ``method=pixelwise``).
+
+A further method touches its own module (a subclass of :class:`Method`), one line of
+:data:`mrcert.core.methods.METHODS` (its class, its schema, what its run keys leave out), its
+schema in :mod:`mrcert.core.method_schemas` and its YAML in ``conf/method/``; nothing in
+``mrcert/infra/`` or ``mrcert/tasks/`` names a method (``tests/test_method_plug.py``). What it
+refuses (its parameters, a motion or a task mode it cannot serve) it says in
+:meth:`Method.from_config`, which config validation calls before any run opens.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import torch
 from omegaconf import DictConfig
@@ -35,6 +38,27 @@ Render = Callable[[torch.Tensor], torch.Tensor]
 """What a smoothed classifier classifies: motions (B, 6) -> images (B, C, H, W), a test sample
 re-rendered under each motion (:meth:`~mrcert.data.samples.TestSample.renderer`); a method's
 :meth:`Method.views` turns it into the noisy samples it votes over."""
+
+
+@runtime_checkable
+class SceneRender(Protocol):
+    """A :data:`Render` that also shows the scene it renders, for a method that reasons about
+    the cloud itself (pixel-wise smoothing bounds the images between its frames):
+    :class:`~mrcert.data.samples.SampleRenderer`."""
+
+    K: torch.Tensor
+    """The camera intrinsics (3, 3)."""
+    background: float
+    """The colour of an empty pixel."""
+    projected: int
+    """The camera poses rendered so far (a certificate's rendering cost)."""
+
+    def __call__(self, motions: torch.Tensor) -> torch.Tensor: ...
+
+    def cloud_for(self, motions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Points (camera frame), colours and tie-break ranks holding every point that can land
+        in the image for a motion within the bound of ``motions``."""
+        ...
 
 
 @dataclass

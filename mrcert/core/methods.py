@@ -1,21 +1,67 @@
-"""The certification methods a config can select (``method.name``), each built from the
-``method`` and ``motion`` config groups."""
+"""The certification methods a config can select (``method.name``): one line each.
+
+A line names the method's class (imported only when a method is built: it brings torch), the
+schema of its ``method`` config group, and what its results never depend on. This module
+imports nothing heavy, so that the schemas register and run keys are computed without torch.
+"""
 
 from __future__ import annotations
 
+import importlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 from omegaconf import DictConfig
 
-from mrcert.core.method import Method
-from mrcert.core.pixelwise import PixelwiseSmoothing
-from mrcert.core.smoothing import SmoothingDistribution
+from mrcert.core.method_schemas import MethodConfig, PixelwiseConfig
 from mrcert.errors import ConfigError
 
-METHODS: dict[str, type[Method]] = {"motion": SmoothingDistribution, "pixelwise": PixelwiseSmoothing}
+if TYPE_CHECKING:
+    from mrcert.core.method import Method
+
+
+@dataclass(frozen=True)
+class Registered:
+    """A method as configs and run keys see it."""
+
+    target: str
+    """``"module:Class"``, a :class:`~mrcert.core.method.Method`."""
+    schema: type
+    """The dataclass its ``conf/method/<name>.yaml`` is checked against."""
+    unkeyed: tuple[str, ...] = ()
+    """Config prefixes none of its results depend on, left out of every run key."""
+    unkeyed_model: tuple[str, ...] = ()
+    """Further prefixes a model trained for it never depends on, left out of a train run's key."""
+
+    def load(self) -> type[Method]:
+        module, name = self.target.split(":")
+        return getattr(importlib.import_module(module), name)
+
+
+METHODS: dict[str, Registered] = {
+    # Camera motion smoothing's parameters are all in motion.*: its method group adds nothing.
+    "motion": Registered("mrcert.core.smoothing:SmoothingDistribution", MethodConfig, unkeyed=("method",)),
+    # Pixel noise: one model serves every axis.
+    "pixelwise": Registered("mrcert.core.pixelwise:PixelwiseSmoothing", PixelwiseConfig, unkeyed_model=("motion",)),
+}
+
+
+def registered(name: str) -> Registered:
+    """The method ``method.name`` names, or a one-line error listing those there are."""
+    if name not in METHODS:
+        raise ConfigError("method.name", name, f"one of {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+def unkeyed(name: str | None, model: bool) -> tuple[str, ...]:
+    """What method ``name``'s run keys leave out (a train run's: ``model``); nothing for an
+    unknown name, which config validation refuses."""
+    method = METHODS.get(str(name))
+    if method is None:
+        return ()
+    return (*method.unkeyed, *method.unkeyed_model) if model else method.unkeyed
 
 
 def build_method(cfg: DictConfig) -> Method:
     """The method ``cfg.method`` names, on ``cfg.motion``."""
-    method = cfg.method
-    if method.name not in METHODS:
-        raise ConfigError("method.name", method.name, f"one of {', '.join(METHODS)}")
-    return METHODS[str(method.name)].from_config(method, cfg.motion)
+    return registered(str(cfg.method.name)).load().from_config(cfg.method, cfg.motion)

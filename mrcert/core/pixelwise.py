@@ -23,7 +23,7 @@ from scipy.stats import norm
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
-from mrcert.core.method import ABSTAIN, Certificate, Method, single_axis
+from mrcert.core.method import ABSTAIN, Certificate, Method, SceneRender, single_axis
 from mrcert.core.sequential import lower_confidence_bound
 from mrcert.core.smoothing import SmoothingDistribution, image_generator
 from mrcert.errors import ConfigError, MrcertError
@@ -362,13 +362,12 @@ class PixelwiseSmoothing(Method):
         the interval when every frame is certified and :func:`interval_certified`. Stopping early
         only leaves tests out, so all the frames certified hold together with probability at
         least ``1 - alpha``; ``n`` counts the estimation samples of the frames certified."""
-        sample = getattr(render, "sample", None)
-        if sample is None:
-            raise MrcertError("pixel-wise certification needs a test sample's renderer (TestSample.renderer())")
+        if not isinstance(render, SceneRender):
+            raise MrcertError("pixel-wise certification needs a renderer that shows its scene (TestSample.renderer())")
         frames = frame_motions(self.axis, self.half_width, self.frames)
         images = render(frames)  # each frame projected once, for its votes and for the bounds
-        points, colors, rank = sample.cloud_for(frames)
-        left, right = piece_bounds(points, colors, sample.K, self.axis, frames, images, sample.background, rank=rank)
+        points, colors, rank = render.cloud_for(frames)
+        left, right = piece_bounds(points, colors, render.K, self.axis, frames, images, render.background, rank=rank)
         reach = self.reach(n, alpha)
         certs: list[Certificate] = []
         for k, f in enumerate(frames):

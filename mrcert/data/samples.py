@@ -198,9 +198,10 @@ class TestSample:
 
 @dataclass
 class SampleRenderer:
-    """:meth:`TestSample.renderer`: a callable ``motions -> images`` that also names its sample
-    (a method that reasons about the cloud itself, such as pixel-wise smoothing, reads it) and
-    counts the camera poses it has projected (``projected``: a certificate's rendering cost)."""
+    """:meth:`TestSample.renderer`: a callable ``motions -> images`` that also shows its scene
+    (a :class:`~mrcert.core.method.SceneRender`, for a method that reasons about the cloud
+    itself) and counts the camera poses it has projected (``projected``: a certificate's
+    rendering cost)."""
 
     sample: TestSample
     backend: Backend = "auto"
@@ -209,3 +210,14 @@ class SampleRenderer:
     def __call__(self, motions: torch.Tensor) -> torch.Tensor:
         self.projected += len(motions)
         return self.sample.render(motions, self.backend)[0]
+
+    @property
+    def K(self) -> torch.Tensor:
+        return self.sample.K
+
+    @property
+    def background(self) -> float:
+        return self.sample.background
+
+    def cloud_for(self, motions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.sample.cloud_for(motions)

@@ -254,13 +254,13 @@ def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
 def _method(cfg: DictConfig, data: dict) -> None:
     """The method is one mrcert has, it accepts its parameters and the motion, and it does what
     the task asks of it (built here once, so that a refusal comes before any run opens)."""
-    from mrcert.core.methods import METHODS, build_method
+    from mrcert.core.methods import build_method
 
     if "method" not in data or "motion" not in data:
         return
-    build_method(cfg)
+    method = build_method(cfg)
     name = data["method"]["name"]
-    if data.get("task", {}).get("sequential") and not METHODS[name].sequential:
+    if data.get("task", {}).get("sequential") and not method.sequential:
         raise ConfigError("task.sequential", True, f"false with method={name} (sequential CERTIFY certifies one view)")
 
 

@@ -33,6 +33,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.core.generator import GENERATOR_VERSION
+from mrcert.core.methods import unkeyed
 from mrcert.infra.config import plain
 
 COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent")
@@ -52,7 +53,10 @@ class Identity:
     when ``key`` has ``value`` (a vanilla model never sees the motion axis). ``files``: keys
     whose value is a file path, identified by the file's content. ``partition``: keys left
     out of the cell key. ``needs_model``: the task evaluates a trained classifier, whose
-    checkpoint (``model.checkpoint``) must be bound before the key exists.
+    checkpoint (``model.checkpoint``) must be bound before the key exists. ``method``: the
+    task's result depends on the certification method as its run (``"result"``) or as the
+    model it trains (``"model"``), less what the method declares it never depends on
+    (:func:`mrcert.core.methods.unkeyed`).
     """
 
     defines: tuple[str, ...]
@@ -61,9 +65,12 @@ class Identity:
     files: tuple[str, ...] = ()
     partition: tuple[str, ...] = ()
     needs_model: bool = False
+    method: str | None = None
 
     def ignored(self, cfg: Mapping[str, Any]) -> tuple[str, ...]:
         extra = tuple(prefix for key, value, prefix in self.ignore_when if _get(cfg, key) == value)
+        if self.method is not None:
+            extra += unkeyed(_get(cfg, "method.name"), model=self.method == "model")
         return (*COMMON_IGNORES, *self.ignores, *extra)
 
     def classify(self, key: str, ignored: tuple[str, ...]) -> bool | None:

@@ -16,6 +16,8 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from mrcert.core.methods import METHODS
+
 
 # --- task --------------------------------------------------------------------------------
 @dataclass
@@ -216,23 +218,6 @@ class MultiAxisMotion(Motion):
 
 
 @dataclass
-class MotionMethod:
-    name: str = MISSING
-
-
-@dataclass
-class PixelwiseCertify:
-    half_width: float = MISSING  # the certified interval [-half_width, half_width] on motion.axis
-    frames: int = MISSING
-
-
-@dataclass
-class PixelwiseMethod(MotionMethod):
-    sigma: float = MISSING  # pixel noise, in units of the [0, 1] image
-    certify: PixelwiseCertify = field(default_factory=PixelwiseCertify)
-
-
-@dataclass
 class Model:
     arch: str = MISSING
     net: Any = MISSING  # instantiated from its _target_ (any nn.Module taking num_classes)
@@ -287,7 +272,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     },
     "data": {"scene": Scene, "synthetic": Synthetic, "released": Released, "custom": Custom, "camera": Camera},
     "motion": {"single": Motion, "multi": MultiAxisMotion},
-    "method": {"motion": MotionMethod, "pixelwise": PixelwiseMethod},
+    "method": {name: method.schema for name, method in METHODS.items()},
     "model": {"model": Model},
     "attack": {"attack": AttackGroup},
     "tracking": {"tracking": Tracking},

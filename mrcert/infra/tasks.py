@@ -64,7 +64,7 @@ def _model_title(cfg: DictConfig) -> str:
     task = str(cfg.task.name)
     ignored = TASKS[task].identity.ignored(cfg)
     words = [task, str(cfg.motion.axis), str(cfg.method.name), str(cfg.model.variant), str(cfg.model.arch)]
-    if cfg.method.name == "motion" or "method" in ignored:
+    if "method" in ignored:  # a method that adds nothing to the key (camera motion smoothing) goes unnamed
         words.remove(str(cfg.method.name))
     if "motion" in ignored:  # a model that never sees the motion (vanilla, pixel noise) has no axis
         words.remove(str(cfg.motion.axis))
@@ -80,17 +80,14 @@ CERTIFY_COLUMNS = ("idx", "label", "predict", "radius", "correct", "time")
 
 
 DATA_FILES = ("data.path", "data.poses")
-MOTION_SMOOTHING = ("method.name", "motion", "method")
-"""``method=motion`` adds nothing to a run key: camera motion smoothing's parameters are all in
-``motion.*``, and the runs made before mrcert had methods keep their keys."""
 EVALUATION = Identity(
     defines=("task", "data", "model", "motion", "method", "seed", "profile"),
     # The recipe in train.* is named by the checkpoint's identity; the crop is exact.
     ignores=("train", "attack", "task.batch_size", "task.backend", "task.resume", "task.crop_sigmas"),
     files=("model.checkpoint", *DATA_FILES),
-    ignore_when=(MOTION_SMOOTHING,),
     partition=PARTITION,
     needs_model=True,
+    method="result",
 )
 
 HELPER_IGNORES = ("data", "model", "motion", "method", "seed", "profile", "train", "attack")
@@ -103,8 +100,8 @@ TASKS: dict[str, Task] = {
         Identity(
             defines=("task", "data", "motion", "method", "seed", "profile"),
             ignores=("model", "train", "attack", "task.backend"),
-            ignore_when=(MOTION_SMOOTHING,),
             files=DATA_FILES,
+            method="result",
         ),
     ),
     "train": Task(
@@ -116,10 +113,9 @@ TASKS: dict[str, Task] = {
             ignore_when=(  # a vanilla model never sees a motion or a method
                 ("model.variant", "vanilla", "motion"),
                 ("model.variant", "vanilla", "method"),
-                MOTION_SMOOTHING,
-                ("method.name", "pixelwise", "motion"),  # pixel noise: one model serves every axis
             ),
             files=DATA_FILES,
+            method="model",
         ),
         headline=("test_acc",),
         title=_model_title,
@@ -127,9 +123,7 @@ TASKS: dict[str, Task] = {
     "certify": Task(
         "mrcert.tasks.certify:run",
         "CERTIFY each test image of the smoothed classifier (certify.tsv)",
-        replace(
-            EVALUATION, ignore_when=(MOTION_SMOOTHING, ("task.sequential", False, "task.look"))
-        ),  # fixed n: no looks
+        replace(EVALUATION, ignore_when=(("task.sequential", False, "task.look"),)),  # fixed n: no looks
         log="certify.tsv",
         columns=(
             *CERTIFY_COLUMNS,

@@ -10,9 +10,9 @@ from __future__ import annotations
 import shutil
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from mrcert.core.smoothing import SmoothingDistribution
+from mrcert.core.methods import build_method
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting.certify_log import read_log
@@ -25,7 +25,8 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     df = read_log(t.path)
     kept = ctx.output_dir / TASKS["import"].log
     shutil.copyfile(t.path, kept)
-    dist = SmoothingDistribution((str(t.axis),), (float(t.sigma),))
+    # What its radii mean: the composed method's certificate on the log's own axis and sigma.
+    method = build_method(OmegaConf.merge(cfg, {"motion": {"axis": str(t.axis), "sigma": float(t.sigma)}}))
     title = f"imported {t.dataset} {t.arch} {t.variant}, smoothing {t.axis}"
-    report(df, float(t.radius), float(t.radius_step), ctx, title, dist.region())
+    report(df, float(t.radius), float(t.radius_step), ctx, title, method.region())
     return summarize(ctx, "import", kept, cfg)

@@ -1,0 +1,27 @@
+"""The schemas of the ``method`` config group, one per method (registered by
+:data:`mrcert.core.methods.METHODS` as ``schema/method/<name>``): plain dataclasses, no torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from omegaconf import MISSING
+
+
+@dataclass
+class MethodConfig:
+    """A method without parameters of its own (camera motion smoothing: all in ``motion.*``)."""
+
+    name: str = MISSING
+
+
+@dataclass
+class PixelwiseCertify:
+    half_width: float = MISSING  # the certified interval [-half_width, half_width] on motion.axis
+    frames: int = MISSING
+
+
+@dataclass
+class PixelwiseConfig(MethodConfig):
+    sigma: float = MISSING  # pixel noise, in units of the [0, 1] image
+    certify: PixelwiseCertify = field(default_factory=PixelwiseCertify)
