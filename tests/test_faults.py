@@ -36,8 +36,12 @@ from tests.conftest import (
 
 def test_a_certificate_counts_the_camera_poses_it_projected(reference):
     """Motion smoothing renders each of its n0 + n samples once: the cost a table reports."""
+    from mrcert.core.geometry import unit
+
     for rows in reference.values():
         assert (rows.projected == 8 + 200).all()
+        # Its radii and sigma are in the axis's unit, and the log says so.
+        assert (rows.radius_unit == rows.axis.map(unit)).all() and (rows.sigma_unit == rows.radius_unit).all()
 
 
 def started_for(seconds: float):

@@ -189,6 +189,8 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     # stops after its first frame (n = 40 estimation samples), and nothing is certified.
     assert len(log) == 2 and set(log.radius) == {0.0} and (log.n == 40).all() and (log.margin < 0).all()
     assert (log.projected == 3).all()  # each frame rendered once, for the bounds and the votes
+    # The interval's half-width is in metres, the pixel noise in units of the [0, 1] image.
+    assert set(log.radius_unit) == {"m"} and set(log.sigma_unit) == {"intensity"}
     assert metrics["mean_samples"] == 40
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     runs = mlflow.search_runs(search_all_experiments=True, filter_string="attributes.status = 'FINISHED'")

@@ -490,3 +490,22 @@ def test_the_tasks_inference_path_predicts_the_classes_of_the_eager_model(traine
             reference = eager(images.contiguous())
             assert torch.equal(tasks.argmax(1), reference.argmax(1))
             torch.testing.assert_close(tasks, reference, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("axes", "sigmas", "radius_unit", "sigma_unit"),
+    [
+        (("tz",), (0.1,), "m", "m"),
+        (("ry",), (0.1,), "rad", "rad"),
+        (("tx", "ty", "tz", "rz"), (0.1, 0.1, 0.2, 0.05), "sigma", "m+m+m+rad"),
+    ],
+)
+def test_a_certificate_carries_the_unit_of_its_radius(axes, sigmas, radius_unit, sigma_unit):
+    """One axis: its unit (metres for t*, radians for r*, by the axis's place in the motion
+    vector); several: Theorem 1's ellipsoid, whose radius is in sigma units."""
+    dist = SmoothingDistribution(axes, sigmas)
+    cert = SmoothedClassifier(Constant(2), dist, 4).certify(
+        tiny_sample().renderer(), 8, 40, 0.01, image_generator(0, 0)
+    )
+    assert cert.unit == dist.region_unit == dist.view_unit == radius_unit and dist.sigma_unit == sigma_unit
+    assert f"({radius_unit})" in dist.region() if len(axes) == 1 else "sigma units" in dist.region()

@@ -137,7 +137,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     assert row["5-pert Emp. Acc"] == pytest.approx((attack.smoothed_robust == 1).mean())
     certified = (certify.correct == 1) & (certify.radius >= 0.1) & (certify.predict >= 0)
     assert row["Certified Acc"] == pytest.approx(certified.mean())
-    radii, acc = tables.curves(src)["tz"]["Smoothed Vanilla SmallCNN"]  # the figure's curve: the merged log's
+    radii, acc = tables.curves(src)[0]["tz"]["Smoothed Vanilla SmallCNN"]  # the figure's curve: the merged log's
     expected_radii, expected_acc = certify_log.curve(certify)
     assert radii.tolist() == expected_radii.tolist() and acc.tolist() == expected_acc.tolist()
     assert acc[0] == pytest.approx(((certify.correct == 1) & (certify.predict >= 0)).mean())
@@ -154,7 +154,7 @@ def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, 
     imported = tables.TABLE3.build(source(store, certify_task="import"))
     assert imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == pytest.approx(0.4)
     assert np.isnan(imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Benign Acc"])
-    radii, acc = tables.curves(source(store, certify_task="import"))["tz"]["Smoothed Augmented SmallCNN"]
+    radii, acc = tables.curves(source(store, certify_task="import"))[0]["tz"]["Smoothed Augmented SmallCNN"]
     assert radii.tolist() == [0.0, 0.05, 0.2, 0.5] and acc.tolist() == pytest.approx([0.6, 0.6, 0.4, 0.2])
     other = tmp_path / "other.tsv"
     other.write_text(COHEN.replace("0.5\t1", "0.05\t1"))

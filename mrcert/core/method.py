@@ -68,6 +68,7 @@ class Certificate:
     count_a: int
     p_a_lower: float
     n: int = 0  # estimation samples drawn (the sequential mode may stop early; several frames add up)
+    unit: str = ""  # the radius's unit (Method.view_unit for one view, Method.region_unit for a method's certify)
     # How far a method's own condition on its views is from holding (pixel-wise smoothing: the
     # smallest, over pieces, of the better end frame's radius less its bound; negative on the
     # piece an interval failed on); NaN for a method that has none.
@@ -147,7 +148,22 @@ class Method(ABC):
     @abstractmethod
     def radius(self, p_a_lower: float) -> float:
         """The radius of Cohen's certificate at one view for a lower bound on ``pA``, in the
-        units of the method's noise."""
+        units of the method's noise (:attr:`view_unit`)."""
+
+    @property
+    @abstractmethod
+    def view_unit(self) -> str:
+        """The unit of :meth:`radius`: Cohen's radius at one view, in the noise's space."""
+
+    @property
+    @abstractmethod
+    def region_unit(self) -> str:
+        """The unit of the radius :meth:`certify` returns: that of the region it certifies."""
+
+    @property
+    @abstractmethod
+    def sigma_unit(self) -> str:
+        """The unit of :attr:`sigmas` (one per axis, joined by ``+``)."""
 
     def judged_at(self, radius: float) -> float:
         """The radius a certify run's certified accuracy is reported at, for the motion's

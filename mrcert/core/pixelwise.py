@@ -336,6 +336,20 @@ class PixelwiseSmoothing(Method):
     def radius(self, p_a_lower: float) -> float:
         return self.sigma * float(norm.ppf(p_a_lower))
 
+    @property
+    def view_unit(self) -> str:
+        """A frame's radius: the l2 norm of a change of the [0, 1] image."""
+        return "intensity"
+
+    @property
+    def region_unit(self) -> str:
+        """The interval's half-width, in the axis's unit."""
+        return unit(self.axis)
+
+    @property
+    def sigma_unit(self) -> str:
+        return "intensity"
+
     def judged_at(self, radius: float) -> float:
         """The interval's half-width: all a certificate can reach."""
         return self.half_width
@@ -384,5 +398,6 @@ class PixelwiseSmoothing(Method):
             worst.count_a,
             worst.p_a_lower,
             n * len(certs),
+            self.region_unit,
             piece_margin(radii, left, right, reach),
         )

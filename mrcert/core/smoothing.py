@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 from scipy.stats import binomtest, norm
 
 from mrcert.core.crop import CropBound
-from mrcert.core.geometry import axis_index, compose, is_translation
+from mrcert.core.geometry import axis_index, compose, is_translation, unit
 from mrcert.core.method import ABSTAIN, Certificate, Method, Render, single_axis
 from mrcert.core.models import predicted
 from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
@@ -64,13 +64,26 @@ class SmoothingDistribution(Method):
     def region(self) -> str:
         """What a certified radius R means for this distribution."""
         if self.single:
-            return f"|{self.axes[0]}| < R ({'m' if self.axes[0].startswith('t') else 'rad'})"
+            return f"|{self.axes[0]}| < R ({self.region_unit})"
         terms = " + ".join(f"({a}/{s:g})^2" for a, s in zip(self.axes, self.sigmas, strict=True))
         return (
             f"sqrt({terms}) < R (ellipsoid in sigma units, Theorem 1). Licensed because at most one axis "
             "rotates and the two translation axes that rotation mixes are smoothed with equal sigma or not at all, "
             "so the noise around a moved camera is the same Gaussian, shifted"
         )
+
+    @property
+    def view_unit(self) -> str:
+        """The axis's unit (``m``, ``rad``); ``sigma`` for several axes (Theorem 1's ellipsoid)."""
+        return unit(self.axes[0]) if self.single else "sigma"
+
+    @property
+    def region_unit(self) -> str:
+        return self.view_unit  # the region is the one view's ball
+
+    @property
+    def sigma_unit(self) -> str:
+        return "+".join(unit(a) for a in self.axes)
 
     def radius(self, p_a_lower: float) -> float:
         """Certified radius for a lower bound on the top class probability (pB = 1 - pA).
@@ -313,9 +326,10 @@ class SmoothedClassifier:
         return self._certificate(c_a, count_a, n, p_a)
 
     def _certificate(self, c_a: int, count_a: int, n: int, p_a: float) -> Certificate:
+        view_unit = self.method.view_unit
         if p_a < 0.5:
-            return Certificate(ABSTAIN, 0.0, count_a, p_a, n)
-        return Certificate(c_a, self.method.radius(p_a), count_a, p_a, n)
+            return Certificate(ABSTAIN, 0.0, count_a, p_a, n, view_unit)
+        return Certificate(c_a, self.method.radius(p_a), count_a, p_a, n, view_unit)
 
     def certify_sequential(
         self, render: Render, n0: int, n: int, alpha: float, radius: float, first_look: int, generator: torch.Generator

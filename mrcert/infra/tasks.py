@@ -136,6 +136,8 @@ TASKS: dict[str, Task] = {
             "seconds",
             "projected",
             "margin",
+            "radius_unit",
+            "sigma_unit",
         ),
         metrics="mrcert.reporting.metrics:certify",
         headline=("certified_accuracy", "clean_accuracy", "mean_samples"),

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from mrcert.core.geometry import axis_index, is_translation, unit
+from mrcert.core.geometry import axis_index, is_translation
 from mrcert.core.method import Method
 from mrcert.reporting.certify_log import curve
 from mrcert.reporting.imaging import pil_array
@@ -48,7 +48,8 @@ def method_figure(
     ax = fig.add_subplot(outer[0])
     ax.imshow(pil_array(view), interpolation="nearest")
     ax.set(xticks=[], yticks=[], title=f"a test view ({name})")
-    noise = ", ".join(f"{a}: sigma {s:g} {unit(a)}" for a, s in zip(method.axes, method.sigmas, strict=True))
+    units = method.sigma_unit.split("+")
+    noise = ", ".join(f"{a}: sigma {s:g} {u}" for a, s, u in zip(method.axes, method.sigmas, units, strict=True))
     title = fig.add_subplot(outer[1])
     title.axis("off")
     title.set_title(f"views under smoothing motions ({noise})")
@@ -64,7 +65,7 @@ def method_figure(
     ax.axvline(radius, color="grey", ls="--", lw=1, label=f"r = {radius:g}")
     ax.legend(fontsize=8, loc="lower left")
     ax.set(
-        xlabel=f"radius ({unit(method.axes[0]) if method.single else 'sigmas'})",
+        xlabel=f"radius ({method.region_unit})",
         ylabel="certified accuracy",
         ylim=(0, 1.02),
         title=f"certified accuracy, {len(log)} test views",

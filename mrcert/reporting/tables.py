@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from mrcert.core.geometry import AXES, unit
+from mrcert.core.geometry import unit
+from mrcert.core.methods import build_method
 from mrcert.reporting import certify_log, paper_results
 from mrcert.reporting.cells import Cell
 from mrcert.reporting.plots import Curve, curve_figure
@@ -343,25 +344,29 @@ def tables_for(src: Source) -> list[Table]:
     return [t for t in TABLES if t.about(src.data_of(t.experiment))]
 
 
-def curves_figure(data: dict[str, dict[str, Curve]]):
-    """The figure: one panel per axis (the paper's order), one curve per model."""
+def curves_figure(data: dict[str, dict[str, Curve]], units: dict[str, str]):
+    """The figure: one panel per axis (the paper's order), one curve per model; ``units``: each
+    panel's radius unit, as its certify runs' method states it (an axis with no run: its own)."""
     order = [a for a in AXES_ORDER if a in data] + [a for a in data if a not in AXES_ORDER]
     panels = {AXIS_NAMES.get(a, a): data[a] for a in order} or {AXIS_NAMES[a]: {} for a in AXES_ORDER}
-    # One axis: metres or radians; several axes (Theorem 1's combinations): radii in sigmas.
-    units = {AXIS_NAMES.get(a, a): f"radius ({unit(a) if a in AXES else 'sigmas'})" for a in [*order, *AXES_ORDER]}
+    units = {AXIS_NAMES.get(a, a): f"radius ({units.get(a) or unit(a)})" for a in [*order, *AXES_ORDER]}
     title = "Certified accuracy against radius" + ("" if data else " (no certify runs)")
     return curve_figure(panels, title, units)
 
 
-def curves(src: Source) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Per axis, per model: the exact step function (radii, certified accuracy) of its certify cell."""
-    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+def curves(src: Source) -> tuple[dict[str, dict[str, Curve]], dict[str, str]]:
+    """Per axis, per model: the exact step function (radii, certified accuracy) of its certify
+    cell; and per axis, the unit of those radii (the method's region unit)."""
+    out: dict[str, dict[str, Curve]] = {}
+    units: dict[str, str] = {}
     for _, cell in src.rows(src.experiment_for(REPRODUCTION), CERTIFIED):
         log = src.index.log(cell)
         if log is not None:
             label = model_label(str(cell.cfg.model.arch), str(cell.cfg.model.variant))
-            out.setdefault(str(cell.cfg.motion.axis), {})[label] = certify_log.curve(log)
-    return out
+            axis = str(cell.cfg.motion.axis)
+            out.setdefault(axis, {})[label] = certify_log.curve(log)
+            units[axis] = build_method(cell.cfg).region_unit
+    return out, units
 
 
 def _cell(value: float, paper: float | None, show_paper: bool):

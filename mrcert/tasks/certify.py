@@ -62,6 +62,8 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "p_a_lower": float(cert.p_a_lower),
             "sigma": "+".join(map(repr, dist.sigmas)),
             "axis": dist.name,
+            "radius_unit": cert.unit,
+            "sigma_unit": dist.sigma_unit,
         }
 
     run_per_image(log, ev, certify_one, f"certify {dist.name}")

@@ -69,7 +69,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         metrics[f"{name}_filled_cells"] = float(
             sum(1 for v in values if isinstance(v, str) and v.strip() or isinstance(v, float) and not np.isnan(v))
         )
-    fig = tables.curves_figure(tables.curves(src))
+    fig = tables.curves_figure(*tables.curves(src))
     ctx.tracker.log_figure(fig, "tables/certified_accuracy_vs_radius.png")
     stem = out / "certified_accuracy_vs_radius"
     figure, _ = save(fig, [stem.with_suffix(".png"), stem.with_suffix(".pdf")])
