@@ -47,7 +47,7 @@ def _naming(source: str) -> list[str]:
 def test_the_check_finds_a_method_named_in_each_way():
     assert _naming('if cfg.method.name == "motion":\n    pass')
     assert _naming('RULE = ("method.name", "pixelwise", "motion")')
-    assert _naming("from mrcert.core.smoothing import SmoothingDistribution")
+    assert _naming("from mrcert.core.smoothing import MotionSmoothing")
     assert not _naming('if "motion" in ignored:\n    words.remove(str(cfg.method.name))')
 
 

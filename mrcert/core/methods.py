@@ -40,7 +40,7 @@ class Registered:
 
 METHODS: dict[str, Registered] = {
     # Camera motion smoothing's parameters are all in motion.*: its method group adds nothing.
-    "motion": Registered("mrcert.core.smoothing:SmoothingDistribution", MethodConfig, unkeyed=("method",)),
+    "motion": Registered("mrcert.core.smoothing:MotionSmoothing", MethodConfig, unkeyed=("method",)),
     # Pixel noise: one model serves every axis.
     "pixelwise": Registered("mrcert.core.pixelwise:PixelwiseSmoothing", PixelwiseConfig, unkeyed_model=("motion",)),
 }

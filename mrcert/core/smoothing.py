@@ -32,7 +32,7 @@ DECISIONS = ("predict", "vote")
 
 
 @dataclass(frozen=True)
-class SmoothingDistribution(Method):
+class MotionSmoothing(Method):
     """Camera motion smoothing (``method=motion``): a zero-mean Gaussian over some motion
     components, one sigma each, that augments the training images and smooths the classifier."""
 
@@ -51,7 +51,7 @@ class SmoothingDistribution(Method):
     sequential = True
 
     @classmethod
-    def from_config(cls, method: DictConfig | None, motion: DictConfig) -> SmoothingDistribution:
+    def from_config(cls, method: DictConfig | None, motion: DictConfig) -> MotionSmoothing:
         """``motion.axes`` + ``motion.sigmas`` (multi-axis), else ``motion.axis`` + ``motion.sigma``
         (``method=motion`` has no parameters of its own)."""
         if motion.get("axes"):
@@ -257,7 +257,7 @@ class SmoothedClassifier:
     :func:`licensed` admits): if :meth:`certify` returns class ``c`` with radius ``R``, then with
     probability at least ``1 - alpha`` over its sampling, ``g(phi(x, delta)) = c`` for every
     camera motion ``delta`` on the smoothed components inside the region of
-    :meth:`SmoothingDistribution.region` (``|delta| < R`` on one axis). :meth:`predict` returns
+    :meth:`MotionSmoothing.region` (``|delta| < R`` on one axis). :meth:`predict` returns
     ``g(x)`` or :data:`ABSTAIN`, and is wrong with probability at most ``alpha``.
     """
 

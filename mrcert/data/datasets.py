@@ -177,7 +177,7 @@ class PosedCloudData(DataBundle):
                 )
             return {"images": images, "labels": split.labels, "poses": split.poses}
 
-        tag = name if key is None else f"{name}-{augment.name}-aug"
+        tag = name if key is None else f"{name}-{augment.axes_label}-aug"
         arrays, folder, hit = cached_arrays(Path(self.data.cache_dir), f"{self.data.name}-{tag}", spec, build)
         self.cache_info[tag] = {
             "folder": str(folder),

@@ -21,7 +21,7 @@ from mrcert.core.methods import METHODS
 
 # --- task --------------------------------------------------------------------------------
 @dataclass
-class Evaluation:
+class EvaluationTask:
     name: str = MISSING
     n: int = MISSING
     alpha: float = MISSING
@@ -37,19 +37,19 @@ class Evaluation:
 
 
 @dataclass
-class Certify(Evaluation):
+class Certify(EvaluationTask):
     n0: int = MISSING
     sequential: bool = MISSING
     look: int = MISSING
 
 
 @dataclass
-class Smooth(Evaluation):
+class Smooth(EvaluationTask):
     pass
 
 
 @dataclass
-class Attack(Evaluation):
+class Attack(EvaluationTask):
     smoothed: bool = MISSING
 
 

@@ -2,9 +2,9 @@
 
 Columns ``idx label predict radius correct time`` first (radius at full precision, predict
 -1 for abstain, time as ``H:MM:SS.ffffff``), then ``count_a n0 n p_a_lower sigma axis
-seconds projected margin radius_unit sigma_unit`` (docs/tasks.md). Rows are appended and flushed one by one; a restarted run keeps every complete
-row and drops a torn last line. Metrics and the certified-accuracy curve are computed from
-the exact step function of the radii.
+seconds projected margin radius_unit sigma_unit`` (docs/tasks.md). Rows are appended and
+flushed one by one; a restarted run keeps every complete row and drops a torn last line.
+Metrics and the certified-accuracy curve are computed from the exact step function of the radii.
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
     if not ev.method.single:
-        raise MrcertError(f"task=attack perturbs one axis; motion={ev.method.name} smooths several")
+        raise MrcertError(f"task=attack perturbs one axis; motion={ev.method.axes_label} smooths several")
     axis = ev.method.axes[0]
     log = result_log(ctx, "attack")
 

@@ -61,13 +61,13 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "margin": float(cert.margin),
             "p_a_lower": float(cert.p_a_lower),
             "sigma": "+".join(map(repr, dist.sigmas)),
-            "axis": dist.name,
+            "axis": dist.axes_label,
             "radius_unit": cert.unit,
             "sigma_unit": dist.sigma_unit,
         }
 
-    run_per_image(log, ev, certify_one, f"certify {dist.name}")
-    title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, smoothing {dist.name}"
+    run_per_image(log, ev, certify_one, f"certify {dist.axes_label}")
+    title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, smoothing {dist.axes_label}"
     report(
         certify_log.read_log(log.path),
         dist.judged_at(float(cfg.motion.radius)),

@@ -118,7 +118,7 @@ def render_dataset(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         sets["train"] = bundle.train
     if "augmented" in t.variants:
         augment = build_method(cfg)
-        sets[f"train-{augment.name}-aug"] = lambda: bundle.train(augment, int(cfg.seed))
+        sets[f"train-{augment.axes_label}-aug"] = lambda: bundle.train(augment, int(cfg.seed))
     loaded = {}
     for name, make in sets.items():
         began = time.perf_counter()

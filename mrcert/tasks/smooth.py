@@ -26,7 +26,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "predict": pred,
             "correct": int(pred == sample.label),
             "n": int(t.n),
-            "axis": ev.method.name,
+            "axis": ev.method.axes_label,
         }
 
     run_per_image(log, ev, predict_one, "smooth")
