@@ -85,7 +85,7 @@ bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run 
 	$(PY) benchmarks/sequential.py
 
 ui: $(STAMP) ## MLflow UI on the project's store, opened on the experiment's runs (PORT=... to change)
-	@$(PY) -c 'from mrcert.infra.tracking import ui_link_for; print("MLflow UI:", ui_link_for("$(abspath $(OUTPUTS))", "http://127.0.0.1:$(PORT)"))'
+	@$(PY) -c 'from mrcert.infra.experiment import ui_link_for; print("MLflow UI:", ui_link_for("$(abspath $(OUTPUTS))", "http://127.0.0.1:$(PORT)"))'
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow.db \
 	  --default-artifact-root $(abspath $(OUTPUTS))/mlartifacts --host 127.0.0.1 --port $(PORT)
 

@@ -19,9 +19,13 @@ from omegaconf import DictConfig, OmegaConf
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra import config as mrcert_config
 from mrcert.infra.checkpoints import bind_checkpoint, local_checkpoint, read_checkpoint
+from mrcert.infra.experiment import find_runs
 from mrcert.infra.identity import RunIdentity, identify
+from mrcert.infra.locks import key_lock
+from mrcert.infra.resumption import log_files_under
+from mrcert.infra.sweeps import fail_parent
 from mrcert.infra.tasks import TASKS
-from mrcert.infra.tracking import RunContext, fail_parent, find_runs, finished_run, key_lock, log_files_under, task_run
+from mrcert.infra.tracking import RunContext, finished_run, task_run
 from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")

@@ -140,7 +140,7 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
 def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs(tmp_path):
     """Every step of make demo, its tables included, runs as a sweep: a parent and its jobs. The
     demo's own recipe, on a tiny scene, and the runs page's view names metrics the runs log."""
-    from mrcert.infra.tracking import EXPERIMENT_TAGS, RUNS_VIEW_METRICS, ui_link_for
+    from mrcert.infra.experiment import EXPERIMENT_TAGS, RUNS_VIEW_METRICS, ui_link_for
 
     recipe = make_recipe("demo")
     assert [c for c in recipe if "task=tables" in c], recipe
@@ -224,7 +224,7 @@ def test_a_store_from_before_the_grouped_view_gets_its_parents_out_of_the_task_g
     by; the first run against such a store moves it to ``mrcert.sweep_tasks`` and sets the view."""
     from omegaconf import OmegaConf
 
-    from mrcert.infra.tracking import EXPERIMENT_TAGS, ensure_experiment
+    from mrcert.infra.experiment import EXPERIMENT_TAGS, ensure_experiment
 
     client = store(tmp_path)
     old_view = {"mlflow.sharedViewState.mrcert": json.dumps({"selectedColumns": []})}

@@ -221,7 +221,7 @@ def test_a_run_resumed_from_before_the_time_count_is_not_reported_as_fully_timed
     its resuming process must not pass its own time off as the whole run's."""
     from types import SimpleNamespace
 
-    from mrcert.infra.tracking import timed_segment
+    from mrcert.infra.resumption import timed_segment
 
     logged: dict[str, float] = {}
     fake = SimpleNamespace(log_metric=lambda k, v: logged.update({k: v}), log_metrics=logged.update)

@@ -489,7 +489,7 @@ def test_the_learning_curve_table_and_its_summary_follow_the_numbers():
 
 
 def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_expect(store):
-    from mrcert.infra.tracking import ui_link_for
+    from mrcert.infra.experiment import ui_link_for
 
     mlflow.set_tracking_uri(f"sqlite:///{store / 'mlflow.db'}")
     client = mlflow.MlflowClient()

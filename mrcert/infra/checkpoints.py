@@ -141,7 +141,7 @@ def bind_checkpoint(
             run_id = run_of(ref)
             if run_id is None:
                 raise MrcertError(f"model.checkpoint={ref!r} is not allowed: a file path or runs:/<run_id>/<path>")
-            from mrcert.infra.tracking import configure
+            from mrcert.infra.experiment import configure
 
             try:
                 configure(cfg.tracking).MlflowClient().get_run(run_id)

@@ -30,9 +30,10 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from mrcert.errors import MrcertError
+from mrcert.infra.experiment import ensure_experiment
 from mrcert.infra.identity import identify
 from mrcert.infra.tasks import TASKS
-from mrcert.infra.tracking import RunContext, ensure_experiment
+from mrcert.infra.tracking import RunContext
 
 GATHERED = "mrcert.gathered_from"
 """Tag of a copy: the id of the run it was copied from."""

@@ -17,7 +17,8 @@ from mrcert.data.protocols import differences
 from mrcert.data.sources import load
 from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
-from mrcert.infra.tracking import RunContext, configure, ensure_experiment
+from mrcert.infra.experiment import configure, ensure_experiment
+from mrcert.infra.tracking import RunContext
 from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.imaging import contact_sheet

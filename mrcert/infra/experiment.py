@@ -1,0 +1,190 @@
+"""The MLflow store and its experiment: mlflow pointed at the store (a SQLite store created
+atomically, a server probed), the experiment created with the runs page's view of mrcert's
+runs, the tags runs are filed under, and the look-up of runs by run key."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from mrcert.errors import MrcertError
+from mrcert.infra.store import FileLock, ensure_sqlite_store, probe_server
+from mrcert.infra.tasks import TASKS
+
+
+def configure(tracking: DictConfig):
+    """The mlflow module pointed at the configured store: a SQLite store is created atomically
+    and checked, a server is probed (see :mod:`mrcert.infra.store`)."""
+    import mlflow
+
+    uri = str(tracking.uri)
+    if uri.startswith("sqlite:///"):
+        db = sqlite_path(uri)
+        try:
+            db.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise MrcertError(f"cannot create the MLflow store folder {db.parent}: {exc}") from None
+        if not os.access(db.parent, os.W_OK):
+            raise MrcertError(f"the MLflow store folder {db.parent} is not writable; set tracking.uri elsewhere")
+        ensure_sqlite_store(db)
+    elif uri.startswith(("http://", "https://")):
+        probe_server(uri)
+    mlflow.set_tracking_uri(uri)
+    return mlflow
+
+
+def sqlite_path(uri: str) -> Path:
+    return Path(uri[len("sqlite:///") :])
+
+
+def ensure_experiment(tracking: DictConfig) -> str:
+    """Id of the configured experiment, created (with its artifact location) if missing."""
+    mlflow = configure(tracking)
+    client = mlflow.MlflowClient()
+    try:
+        exp = client.get_experiment_by_name(tracking.experiment)
+    except Exception as exc:  # unreachable server, corrupt store
+        raise MrcertError(f"cannot reach the MLflow store at {tracking.uri}: {exc}") from None
+    if exp is not None:
+        stale = {k: v for k, v in EXPERIMENT_TAGS.items() if exp.tags.get(k) != v}
+        if stale:  # a store an older mrcert wrote: its sweep parents carry the task tag the view groups by
+            _untag_parents(mlflow, exp.experiment_id)
+        for k, v in stale.items():
+            client.set_experiment_tag(exp.experiment_id, k, v)
+        return exp.experiment_id
+    location = tracking.artifact_location
+    if location:
+        Path(location).mkdir(parents=True, exist_ok=True)
+        location = Path(location).as_uri()
+    uri = str(tracking.uri)
+    if uri.startswith("sqlite:///"):  # one creator at a time; the others find it made
+        db = sqlite_path(uri)
+        with FileLock(db.with_name(f".{db.name}.lock")):
+            exp = client.get_experiment_by_name(tracking.experiment)
+            if exp is not None:
+                return exp.experiment_id
+            return client.create_experiment(tracking.experiment, location, EXPERIMENT_TAGS)
+    try:
+        return client.create_experiment(tracking.experiment, artifact_location=location, tags=EXPERIMENT_TAGS)
+    except Exception:  # another job created it in between (a server serialises creations)
+        exp = client.get_experiment_by_name(tracking.experiment)
+        if exp is None:
+            raise
+        return exp.experiment_id
+
+
+RUNS_VIEW_METRICS = tuple(
+    dict.fromkeys(m for task in sorted(TASKS.values(), key=lambda t: t.log is None) for m in task.headline)
+)
+"""The tasks' headline metrics, in the order the runs page shows them: those of the tasks with a
+per-image log (certify first) before a train run's."""
+
+RUNS_VIEW = "mrcert"
+"""Name of the runs page's view that :func:`ui_link` opens (MLflow's shared view state)."""
+
+_NAME_COLUMN = "attributes.`Run Name`"
+
+_VIEW_COLUMNS = [f"metrics.`{name}`" for name in RUNS_VIEW_METRICS]
+
+RUNS_VIEW_GROUP = "mrcert.task"
+"""The tag the runs page groups by: every task run carries it, a sweep's parent does not (its
+tasks are ``mrcert.sweep_tasks``), so parents gather in MLflow's collapsed "Additional runs"."""
+
+EXPERIMENT_TAGS = {
+    # MLflow's UI then opens the experiment on its runs, not on GenAI traces.
+    "mlflow.experimentKind": "custom_model_development",
+    # A view of the runs page (MLflow's "share view" mechanism: an experiment tag named by the
+    # view's key, opened with ``?viewStateShareKey=<key>``): runs grouped by task, each group
+    # open and its runs listed (a sweep's jobs are otherwise hidden under their collapsed
+    # parent), certify runs first, the run name wide enough for task, axis, variant and model,
+    # then the headline metrics, with no horizontal scrolling.
+    f"mlflow.sharedViewState.{RUNS_VIEW}": json.dumps(
+        {
+            "selectedColumns": _VIEW_COLUMNS,
+            "columnOrder": [_NAME_COLUMN, *_VIEW_COLUMNS],
+            "columnWidths": {_NAME_COLUMN: 320} | {f"metrics.`{m}`": 7 * len(m) + 24 for m in RUNS_VIEW_METRICS},
+            "groupBy": {
+                "aggregateFunction": "average",
+                "groupByKeys": [{"mode": "tag", "groupByData": RUNS_VIEW_GROUP}],
+            },
+            "orderByKey": _VIEW_COLUMNS[0],
+            "orderByAsc": False,
+        }
+    ),
+}
+"""Tags every mrcert experiment carries (set on creation, restored when missing or changed)."""
+
+
+def _untag_parents(mlflow, experiment_id: str) -> None:
+    """Move a sweep parent's :data:`RUNS_VIEW_GROUP` tag to ``mrcert.sweep_tasks`` (what parents
+    carry now), so that the runs page's groups hold task runs only."""
+    parents = mlflow.search_runs(
+        experiment_ids=[experiment_id],
+        filter_string=f"tags.`mrcert.multirun` = 'parent' and tags.`{RUNS_VIEW_GROUP}` != ''",
+        output_format="list",
+    )
+    client = mlflow.MlflowClient()
+    for run in parents:
+        client.set_tag(run.info.run_id, "mrcert.sweep_tasks", run.data.tags[RUNS_VIEW_GROUP])
+        client.delete_tag(run.info.run_id, RUNS_VIEW_GROUP)
+
+
+UI_WORKFLOW = "machine_learning"
+"""MLflow 3's UI shows an experiment as GenAI work (traces, judges, prompts in its sidebar) unless
+the page is asked for its model-training view (``workflowType``): the link asks for it."""
+
+
+def ui_link(tracking: DictConfig, base: str) -> str:
+    """The MLflow UI page of the experiment's runs, in its model-training view and mrcert's view
+    of the runs (``base``: where the UI is served)."""
+    query = f"workflowType={UI_WORKFLOW}&viewStateShareKey={RUNS_VIEW}"
+    return f"{base.rstrip('/')}/#/experiments/{ensure_experiment(tracking)}/runs?{query}"
+
+
+def ui_link_for(outputs: str, base: str, experiment: str = "mrcert") -> str:
+    """:func:`ui_link` for the default SQLite store under ``outputs`` (what ``make ui`` serves)."""
+    uri = f"sqlite:///{Path(outputs).resolve() / 'mlflow.db'}"
+    location = str(Path(outputs).resolve() / "mlartifacts")
+    tracking = OmegaConf.create({"enabled": True, "uri": uri, "artifact_location": location, "experiment": experiment})
+    return ui_link(tracking, base)
+
+
+def run_tags(cfg: DictConfig) -> dict[str, str]:
+    """Tags that tables and look-ups filter on."""
+    select = lambda key: OmegaConf.select(cfg, key, default=None)  # noqa: E731
+    tags = {
+        "mrcert.task": select("task.name"),
+        "mrcert.axis": select("motion.axis"),
+        "mrcert.model": select("model.arch"),
+        "mrcert.dataset": select("data.name"),
+        "mrcert.variant": select("model.variant"),
+        "mrcert.profile": select("profile.name"),
+        "mrcert.method": select("method.name"),
+    }
+    overrides = OmegaConf.select(cfg, "task.tags", default=None)  # e.g. an imported log's metadata
+    if overrides:
+        tags.update(OmegaConf.to_container(overrides, resolve=True))
+    return {k: str(v) for k, v in tags.items() if v is not None}
+
+
+def find_runs(tracking: DictConfig, key: str, finished: bool, task: str | None = None) -> list:
+    """Runs whose run key is ``key``, newest first: FINISHED ones, or (``finished=False``)
+    interrupted ones (RUNNING or KILLED; never FAILED, which ended on an error)."""
+    mlflow = configure(tracking)
+    exp = mlflow.MlflowClient().get_experiment_by_name(tracking.experiment)
+    if exp is None:
+        return []
+    status = "= 'FINISHED'" if finished else "!= 'FINISHED'"
+    where = [f"tags.`mrcert.key` = '{key}'", f"attributes.status {status}"]
+    if task is not None:
+        where.append(f"tags.`mrcert.task` = '{task}'")
+    runs = mlflow.search_runs(
+        experiment_ids=[exp.experiment_id],
+        filter_string=" and ".join(where),
+        order_by=["attributes.start_time DESC"],
+        output_format="list",
+    )
+    return runs if finished else [r for r in runs if r.info.status in ("RUNNING", "KILLED")]
