@@ -103,7 +103,7 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
     for a GPU) trained, certified, smoothed and attacked at K = 5 and 100, the tabletop experiment
     beside it, and the tables and evidence page built from exactly those runs."""
     from mrcert.reporting import tables
-    from mrcert.reporting.source import sweep_combos
+    from mrcert.reporting.experiment_cells import sweep_combos
     from tests.conftest import compose_cfg
 
     recipe = make_recipe("reproduce-tables", f"PROFILE={profile}")

@@ -36,7 +36,7 @@ REQUIRED = {
     ("data", "pointcloud"): ["data.path=scan.ply"],
     ("data", "custom"): ["data.path=scan.ply", "data.poses=poses.json"],
     ("task", "import"): ["task.path=certify.tsv"],
-    ("task", "gather"): ["task.source=other/outputs"],
+    ("task", "gather"): ["task.store=other/outputs"],
 }
 
 
@@ -223,7 +223,7 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
     from mrcert.infra.config import plain
     from mrcert.infra.identity import identify
     from mrcert.infra.tasks import TASKS
-    from mrcert.reporting.source import sweep_combos
+    from mrcert.reporting.experiment_cells import sweep_combos
 
     assert set(EXPERIMENT_TASKS) == {p.stem for p in (CONF_DIR / "experiment").glob("*.yaml")}
     trained, evaluated = set(), {}

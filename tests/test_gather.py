@@ -16,7 +16,7 @@ from mrcert.infra.runtime import machine
 from mrcert.reporting import results_page, tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
-from mrcert.reporting.source import Source
+from mrcert.reporting.experiment_cells import ExperimentCells
 from mrcert.tasks.gather import GATHERED
 from tests.conftest import run_cli
 from tests.test_tables import SETTINGS, run
@@ -34,13 +34,13 @@ def gpu_store(tmp_path_factory):
     return out
 
 
-def index(out: Path, profile: str = "quick") -> Source:
+def index(out: Path, profile: str = "quick") -> ExperimentCells:
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    return Source(RunIndex.gather("mrcert"), profile, overrides=(*SETTINGS, *CHEAP))
+    return ExperimentCells(RunIndex.gather("mrcert"), profile, overrides=(*SETTINGS, *CHEAP))
 
 
 def gather(into: Path, source: Path) -> dict:
-    return run(into, ["task=gather", f"task.source={source}"], f"gather-{source.name}")
+    return run(into, ["task=gather", f"task.store={source}"], f"gather-{source.name}")
 
 
 def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_store):
@@ -108,6 +108,6 @@ def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
 
 
 def test_a_store_that_is_not_one_is_refused_before_any_run(tmp_path):
-    proc = run_cli(["task=gather", f"task.source={tmp_path}"], tmp_path / "out")
-    assert proc.returncode != 0 and f"task.source='{tmp_path}' is not an mrcert store" in proc.stderr
+    proc = run_cli(["task=gather", f"task.store={tmp_path}"], tmp_path / "out")
+    assert proc.returncode != 0 and f"task.store='{tmp_path}' is not an mrcert store" in proc.stderr
     assert not (tmp_path / "out" / "mlflow.db").exists()

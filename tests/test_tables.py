@@ -17,7 +17,7 @@ from mrcert.__main__ import run_task
 from mrcert.reporting import certify_log, paper_results, tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
-from mrcert.reporting.source import Source
+from mrcert.reporting.experiment_cells import ExperimentCells
 from mrcert.reporting.writers import write
 from tests.conftest import TINY, compose_cfg, run_cli
 
@@ -51,9 +51,9 @@ def store(tmp_path_factory):
     return out
 
 
-def source(out: Path, **kw) -> tables.Source:
+def source(out: Path, **kw) -> ExperimentCells:
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    return Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=tuple(SETTINGS), **kw)
+    return ExperimentCells(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=tuple(SETTINGS), **kw)
 
 
 def hand(out: Path, name: str, file: str, column: str, value=1) -> float:
@@ -118,7 +118,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=0"], f"{task}-0")
     overrides = tuple([*SETTINGS, "task.skip=1", "task.max=4"])
-    src = Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
     early = tables.TABLE3.build(src)
     assert early.loc[("Tz", "Smoothed Vanilla SmallCNN"), ["Benign Acc", "5-pert Emp. Acc"]].isna().all()
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
@@ -126,7 +126,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     assert notes[("Tz / Smoothed Augmented SmallCNN", "Benign Acc")] == "no finished train run for its model"
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=1"], f"{task}-1")
-    src = Source(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
     df = tables.TABLE3.build(src)
     smooth, attack, certify = (
         pd.concat([read_log(out / "runs" / f"{task}-{i}" / f"{task}.tsv", ["idx"]) for i in (0, 1)]) for task in TASKS
@@ -175,7 +175,8 @@ def test_table_3_of_the_released_metaroom_from_imported_logs(tmp_path):
     done = run_cli(["task=import", f"task.path={log}", *released], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     for data, expected in (("data=metaroom", "0.400 (0.817)"), (None, "(0.817)")):
-        args = ["task=tables", "task.source=import", "profile=paper", "task.show_paper=true", *([data] if data else [])]
+        args = ["task=tables", "task.certify_task=import", "profile=paper", "task.show_paper=true"]
+        args += [data] if data else []
         built = run_cli(args, tmp_path)
         assert built.returncode == 0, built.stderr[-2000:]
         table = pd.read_csv(tmp_path / "tables" / "table3_certified.csv", keep_default_na=False)
@@ -242,7 +243,7 @@ def test_every_declared_table_takes_each_cell_from_its_own_measure():
     thousandths: the axis): Table 1 puts base and smoothed side by side at K = 100, the appendix
     the smoothed 5- and 100-perturbed, the tabletop table the mean benign accuracy over the axes
     beside each axis's 10-perturbed accuracy; each cell names the run it came from."""
-    src = Source(Encoded(), "quick")
+    src = ExperimentCells(Encoded(), "quick")
     by_name = {t.name: t for t in tables.TABLES}
     t1 = by_name["table1_augmented"].build(src)
     assert list(t1.columns) == ["SmallCNN Base", "SmallCNN Smoothed"]
@@ -429,7 +430,7 @@ def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
         job = [f"experiment={experiment}", "task=train", f"data.protocol.separation_rule={rule}", *tiny]
         results[arch, rule] = run(tmp_path, [*job, "data.protocol.train.per_class=40", "seed=0"], f"lc-{arch}-{rule}")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    src = Source(RunIndex.gather("mrcert"), "quick", overrides=tuple(tiny))
+    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", overrides=tuple(tiny))
     df = learning_curve.runs(src).set_index(["model", "separation rule"])
     assert sorted(df.index) == sorted(jobs) and (df["training poses per class"] == 40).all()
     for key, result in results.items():
@@ -543,7 +544,7 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     run(tmp_path, [*pixelwise, *SETTINGS, "task=train"], "pws-train")
     run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    src = Source(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
+    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
     df = side_by_side.runs(src)
     cms, pws = (read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"]) for name in ("cms", "pws"))
     assert len(pws) < len(cms) and set(pws.idx) < set(cms.idx)  # every 10th image

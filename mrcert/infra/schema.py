@@ -80,7 +80,7 @@ class Tables:
     overrides: list[str] = field(default_factory=list)
     archs: list[str] | None = None
     axes: list[str] | None = None
-    source: str = MISSING
+    certify_task: str = MISSING
     show_paper: bool = MISSING
     parent: str | None = None
     output_dir: str = MISSING
@@ -107,7 +107,7 @@ class Import:
 @dataclass
 class Gather:
     name: str = MISSING
-    source: str = MISSING
+    store: str = MISSING
 
 
 @dataclass

@@ -222,9 +222,9 @@ TASKS: dict[str, Task] = {
         Identity(
             defines=("task",),
             ignores=HELPER_IGNORES,
-            files=("task.source",),  # checked before any run starts (mrcert.tasks.inputs)
+            files=("task.store",),  # checked before any run starts (mrcert.tasks.inputs)
         ),
         reusable=False,
-        title=lambda cfg: f"gather {cfg.task.source}",
+        title=lambda cfg: f"gather {cfg.task.store}",
     ),
 }

@@ -15,14 +15,14 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from mrcert.reporting.source import Source, sweep_combos
+from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
 from mrcert.reporting.tables import arch_name
 
 EXPERIMENTS = ("learning_curve", "learning_curve_any", "learning_curve_resnet18")
 """The experiments whose train runs make the curve, the page's architecture (the small CNN) first."""
 
 
-def runs(src: Source, experiments: tuple[str, ...] = EXPERIMENTS) -> pd.DataFrame:
+def runs(src: ExperimentCells, experiments: tuple[str, ...] = EXPERIMENTS) -> pd.DataFrame:
     """The experiments' finished train runs, one row each (empty when none has run), in the
     experiments' order; the source's overrides apply to every job except the keys the sweep sets."""
     rows = []

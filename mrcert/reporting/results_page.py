@@ -16,9 +16,9 @@ import pandas as pd
 
 from mrcert.reporting import certify_log, learning_curve, paper_results, side_by_side, tables
 from mrcert.reporting.cells import Cell, compose_config
+from mrcert.reporting.experiment_cells import ExperimentCells
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
-from mrcert.reporting.source import Source
 from mrcert.reporting.tables import (
     AXIS_NAMES,
     CERTIFIED,
@@ -43,7 +43,7 @@ class Job:
     attack: Cell
 
 
-def jobs_of(src: Source, experiment: str) -> list[Job]:
+def jobs_of(src: ExperimentCells, experiment: str) -> list[Job]:
     """The experiment's jobs with their certify, smooth and attack cells (the attack at the
     experiment's own ``attack.k``)."""
     jobs = []
@@ -62,7 +62,7 @@ def jobs_of(src: Source, experiment: str) -> list[Job]:
     return jobs
 
 
-def findings(src: Source, jobs: list[Job]) -> dict:
+def findings(src: ExperimentCells, jobs: list[Job]) -> dict:
     """The paper's three qualitative findings, each counted over our rows: for each, how many
     rows hold, of how many, and each row's two numbers; the attack's K and n and CERTIFY's alpha
     come from the runs' configs."""
@@ -126,7 +126,7 @@ def _counted(holds: list[bool], rows: list[str]) -> dict:
     return {"holds": sum(holds), "total": len(holds), "rows": rows}
 
 
-def base_models(src: Source, jobs: list[Job]) -> pd.DataFrame:
+def base_models(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
     """Each evaluated model's training record: accuracy on its validation poses (what selected
     ``best.pt``) and on the test images (measured once, after training)."""
     df = src.index.df.set_index("run_id")
@@ -186,7 +186,7 @@ def _validation(cfg) -> str:
     return f"{spec.per_class} validation poses per class (docs/method.md §3)"
 
 
-def _images(src: Source, cell: Cell) -> int | str:
+def _images(src: ExperimentCells, cell: Cell) -> int | str:
     log = src.index.log(cell)
     return "its" if log is None else len(log)
 
@@ -206,7 +206,7 @@ ATTACK_WORDS = {"uniform": "uniform", "grid": "evenly spaced"}
 """How the page names an attack's motions (``attack.name``)."""
 
 
-def setup(src: Source, jobs: list[Job]) -> dict | None:
+def setup(src: ExperimentCells, jobs: list[Job]) -> dict | None:
     """The experiment's settings as its runs' composed configs have them."""
     if not jobs:
         return None
@@ -258,7 +258,7 @@ def run_seconds(run: pd.Series) -> float:
     return (run["end_time"] - run["start_time"]).total_seconds()
 
 
-def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
+def stage_times(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
     """Time per stage: the runs' working wall-clock (``run_seconds``) summed over the stage's
     runs, the machines they ran on, and the seconds per test image measured in the per-image
     logs (work only)."""
@@ -296,7 +296,7 @@ def stage_times(src: Source, jobs: list[Job]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def side_by_side_section(src: Source, page: Path) -> dict | None:
+def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
     """Camera motion smoothing beside pixel-wise smoothing, when ``make side-by-side`` has run."""
     pair = side_by_side.runs(src)
     if not len(pair):
@@ -320,7 +320,7 @@ def side_by_side_section(src: Source, page: Path) -> dict | None:
 PAPER_PROFILE = "paper"
 
 
-def paper_profile_section(src: Source) -> dict | None:
+def paper_profile_section(src: ExperimentCells) -> dict | None:
     """The paper's own profile (``profile=paper``: the paper's data settings, ResNets and
     100-epoch recipe, a GPU's work), when the store holds any of its Table 3 runs (e.g. gathered
     from a GPU with ``task=gather``): the filled rows beside the paper, their base models, and the
@@ -328,7 +328,7 @@ def paper_profile_section(src: Source) -> dict | None:
     profiles = src.index.df.get("tags.mrcert.profile", pd.Series(dtype=str))
     if src.profile == PAPER_PROFILE or not (profiles == PAPER_PROFILE).any():  # the page's own, or nothing to show
         return None
-    paper = Source(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
+    paper = ExperimentCells(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
     experiment = REPRODUCTION.format(profile=PAPER_PROFILE)
     filled = {
         (AXIS_NAMES.get(j.axis, j.axis), model_label(j.arch, j.variant)): j
@@ -376,7 +376,7 @@ def render(context: dict) -> str:
 
 
 def page_context(
-    src: Source,
+    src: ExperimentCells,
     experiment: str,
     table: pd.DataFrame,
     picture: str,
@@ -432,7 +432,7 @@ def page_context(
 
 
 def write_page(
-    src: Source,
+    src: ExperimentCells,
     experiment: str,
     table: pd.DataFrame,
     figure: Path,

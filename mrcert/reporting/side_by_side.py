@@ -17,7 +17,7 @@ import pandas as pd
 
 from mrcert.core.geometry import unit
 from mrcert.reporting import certify_log
-from mrcert.reporting.source import Source, sweep_combos
+from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
 
 EXPERIMENT = "side_by_side"
 MOTION_EXPERIMENT = "reproduce_quick"
@@ -38,7 +38,7 @@ def _costs(log: pd.DataFrame, n: int) -> dict[str, float]:
     }
 
 
-def runs(src: Source, experiment: str = EXPERIMENT) -> pd.DataFrame:
+def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
     """Two rows (motion smoothing, then pixel-wise smoothing) per finished pixel-wise run of the
     experiment, on the pixel-wise run's images; empty when none has run."""
     rows = []

@@ -25,8 +25,8 @@ from mrcert.core.geometry import unit
 from mrcert.core.methods import build_method
 from mrcert.reporting import certify_log, paper_results
 from mrcert.reporting.cells import Cell
+from mrcert.reporting.experiment_cells import ExperimentCells, Measure
 from mrcert.reporting.plots import Curve, curve_figure
-from mrcert.reporting.source import Measure, Source
 
 ARCH_NAMES = {"resnet18": "ResNet-18", "resnet50": "ResNet-50", "small_cnn": "SmallCNN"}
 AXIS_NAMES = {"tz": "Tz", "tx": "Tx", "ty": "Ty", "rz": "Rz", "rx": "Rx", "ry": "Ry"}
@@ -149,13 +149,13 @@ class Table:
     index: tuple[str, ...] = ()
     entries: tuple[Entry, ...] = ()
     where: Callable[[Job], bool] = lambda job: True
-    custom: Callable[[Source, str], pd.DataFrame] | None = None
+    custom: Callable[[ExperimentCells, str], pd.DataFrame] | None = None
 
     def about(self, data: str) -> bool:
         return self.data is None or data in self.data
 
     def build(
-        self, src: Source, show_paper: bool = False, name: str | None = None, paper_arch: str | None = None
+        self, src: ExperimentCells, show_paper: bool = False, name: str | None = None, paper_arch: str | None = None
     ) -> pd.DataFrame:
         """The table from ``src``'s runs; with ``show_paper`` each cell reads ``ours (paper)``,
         the paper's value of the row's own architecture or, for one the paper did not evaluate
@@ -226,7 +226,7 @@ def _tabletop(who: str, benign: Measure) -> tuple[Entry, ...]:
     )
 
 
-def sweep_table(src: Source, name: str = "sweep") -> pd.DataFrame:
+def sweep_table(src: ExperimentCells, name: str = "sweep") -> pd.DataFrame:
     """Certified accuracy against sigma (rows) and radius (columns, each axis's grid
     ``k * radius_step``): from the sweep experiment's certify cells, or, with the source's
     ``parent`` (a sweep's parent run id), from that sweep's children."""
@@ -337,7 +337,7 @@ TABLES = (
 )
 
 
-def tables_for(src: Source) -> list[Table]:
+def tables_for(src: ExperimentCells) -> list[Table]:
     """The tables whose cells ``src`` composes on a data set they are about: every table of the
     paper when each reads its own experiment, only those about ``task.experiment``'s data set
     when one experiment fills them all (``make demo``'s MetaRoom fills no tabletop table)."""
@@ -354,7 +354,7 @@ def curves_figure(data: dict[str, dict[str, Curve]], units: dict[str, str]):
     return curve_figure(panels, title, units)
 
 
-def curves(src: Source) -> tuple[dict[str, dict[str, Curve]], dict[str, str]]:
+def curves(src: ExperimentCells) -> tuple[dict[str, dict[str, Curve]], dict[str, str]]:
     """Per axis, per model: the exact step function (radii, certified accuracy) of its certify
     cell; and per axis, the unit of those radii (the method's region unit)."""
     out: dict[str, dict[str, Curve]] = {}

@@ -41,15 +41,15 @@ CONFIG = "resolved_config.yaml"
 BATCH = 100  # MLflow's log_batch takes at most 100 params or tags and 1000 metrics per call
 
 
-def source_store(value: str) -> tuple[str, Path | None]:
-    """The tracking URI of ``task.source`` (an outputs folder holding ``mlflow.db``, or a
+def other_store(value: str) -> tuple[str, Path | None]:
+    """The tracking URI of ``task.store`` (an outputs folder holding ``mlflow.db``, or a
     tracking URI) and the folder its artifacts live under, when it is a folder."""
     if value.startswith(("http://", "https://")):
         return value, None
     db = Path(value[len("sqlite:///") :]) if value.startswith("sqlite:///") else Path(value).expanduser() / "mlflow.db"
     if not db.is_file():
         raise MrcertError(
-            f"task.source={value!r} is not an mrcert store: {db} does not exist; give an outputs folder "
+            f"task.store={value!r} is not an mrcert store: {db} does not exist; give an outputs folder "
             "(the one holding mlflow.db), a sqlite:/// URI or a tracking server's http(s):// URI"
         )
     return f"sqlite:///{db.resolve()}", db.resolve().parent
@@ -174,14 +174,14 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     import mlflow
 
-    uri, folder = source_store(str(cfg.task.source))
+    uri, folder = other_store(str(cfg.task.store))
     if uri == str(cfg.tracking.uri):
-        raise MrcertError(f"task.source={cfg.task.source!r} is this store itself; give another store's folder or URI")
+        raise MrcertError(f"task.store={cfg.task.store!r} is this store itself; give another store's folder or URI")
     experiment_id = ensure_experiment(cfg.tracking)
     src, dst = mlflow.MlflowClient(tracking_uri=uri), mlflow.MlflowClient()
     exp = src.get_experiment_by_name(cfg.tracking.experiment)
     if exp is None:
-        raise MrcertError(f"task.source={cfg.task.source!r} holds no experiment {cfg.tracking.experiment!r}")
+        raise MrcertError(f"task.store={cfg.task.store!r} holds no experiment {cfg.tracking.experiment!r}")
     here = {r.info.run_id: r for r in _runs(dst, experiment_id)}
     ids: dict[str, str] = {}
     for r in here.values():

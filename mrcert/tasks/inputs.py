@@ -43,9 +43,9 @@ def _log(path: Path) -> None:
 
 
 def _store(path: Path) -> None:
-    from mrcert.tasks.gather import source_store
+    from mrcert.tasks.gather import other_store
 
-    source_store(str(path))
+    other_store(str(path))
 
 
 CHECKS: dict[str, Callable[[Path], None]] = {
@@ -53,7 +53,7 @@ CHECKS: dict[str, Callable[[Path], None]] = {
     "data.path": _cloud,  # a cloud file; the released MetaRoom is a folder, checked when opened
     "data.poses": _poses,
     "task.path": _log,
-    "task.source": _store,  # task=gather's other store
+    "task.store": _store,  # task=gather's other store
 }
 
 

@@ -21,33 +21,33 @@ from mrcert.infra.experiment import configure, ensure_experiment
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
+from mrcert.reporting.experiment_cells import ExperimentCells
 from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.overview import method_figure
 from mrcert.reporting.plots import save
 from mrcert.reporting.results_page import PAPER_ARCH, base_models, jobs_of, write_page
-from mrcert.reporting.source import Source
 from mrcert.reporting.writers import as_text, markdown, write
 
-SOURCES = {"runs": "certify", "import": "import"}
+CERTIFY_TASKS = ("certify", "import")
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     if not cfg.tracking.enabled:
         raise MrcertError("task=tables reads runs from MLflow: use tracking=sqlite or tracking=server")
-    if t.source not in SOURCES:
-        raise MrcertError(f"task.source={t.source!r} is not allowed: {' or '.join(SOURCES)}")
+    if t.certify_task not in CERTIFY_TASKS:
+        raise MrcertError(f"task.certify_task={t.certify_task!r} is not allowed: {' or '.join(CERTIFY_TASKS)}")
     configure(cfg.tracking)
     experiment_id = ensure_experiment(cfg.tracking)
     named = named_data()
-    src = Source(
+    src = ExperimentCells(
         RunIndex.gather(cfg.tracking.experiment),
         profile=str(t.profile),
         experiment=t.experiment,
         overrides=tuple(t.overrides) + ((f"data={named}",) if named else ()),
         archs=tuple(t.archs) if t.archs else None,
         axes=tuple(t.axes) if t.axes else None,
-        certify_task=SOURCES[t.source],
+        certify_task=str(t.certify_task),
         parent=t.parent,
         link=f"{str(t.ui_url).rstrip('/')}/#/experiments/{experiment_id}/runs/{{run_id}}",
     )
@@ -111,7 +111,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     return metrics | {"tables": str(out.resolve())}
 
 
-def method_overview(src: Source, path: Path) -> Path | None:
+def method_overview(src: ExperimentCells, path: Path) -> Path | None:
     """The method in one picture (:func:`mrcert.reporting.overview.method_figure`) from the
     first filled certify cell of Table 3's rows, on its first correctly classified test image;
     None when no certify cell is filled."""

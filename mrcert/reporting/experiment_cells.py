@@ -1,7 +1,7 @@
 """Where tables take their cells from: an experiment's jobs (the sweep of its config), the
 measure a column shows (a task's metric with the overrides that define it), and the record of
 which runs filled each cell. Generic: the paper's tables (:mod:`mrcert.reporting.tables`), the
-evidence page and its sections all read their cells through a :class:`Source`.
+evidence page and its sections all read their cells through a :class:`ExperimentCells`.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ def sweep_combos(experiment: str) -> list[tuple[str, ...]]:
 
 
 @dataclass
-class Source:
+class ExperimentCells:
     """Where the tables take their cells from, and the record of which runs filled them.
 
     ``experiment``: build every table from this experiment (e.g. ``demo``) instead of each
