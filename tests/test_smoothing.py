@@ -328,7 +328,7 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
         out = run_task(tiny_cfg(overrides, tmp_path / name), tmp_path / name / "a")
         df = read_log(next((tmp_path / name / "a").glob("attack.tsv")), ["idx", "base_robust"])
         assert out["base_robust_accuracy"] == df["base_robust"].mean()
-        assert (df["base_worst"].abs() <= 0.1).all()
+        assert (df["base_worst"].abs() <= 0.1).all() and set(df["motion_unit"]) == {"m"}  # tz: metres
         # The smoothed columns, recomputed with PREDICT at each perturbed pose in turn: robust only
         # if right at all K; else the first failing motion and how it failed.
         acfg = tiny_cfg(["task=attack", f"attack={name}", "attack.k=4"], tmp_path / name)

@@ -173,6 +173,7 @@ TASKS: dict[str, Task] = {
             "smoothed_robust",
             "smoothed_worst",
             "smoothed_failure",
+            "motion_unit",
             "seconds",
         ),
         metrics="mrcert.reporting.metrics:attack",

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.geometry import axis_index
+from mrcert.core.geometry import axis_index, unit
 from mrcert.core.models import predicted
 from mrcert.core.smoothing import ABSTAIN, image_generator
 from mrcert.errors import MrcertError
@@ -70,6 +70,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "smoothed_robust": -1,
             "smoothed_worst": float("nan"),
             "smoothed_failure": "-",
+            "motion_unit": unit(axis),
         }
         if t.smoothed:
             votes = []
