@@ -414,3 +414,19 @@ def test_the_triton_back_end_wants_a_gpu_or_triton_s_interpreter(monkeypatch):
     monkeypatch.setenv("TRITON_INTERPRET", "0")
     with pytest.raises(ValueError, match="triton projection backend needs CUDA tensors, got device cpu"):
         project(pts, cols, PAPER_K, torch.zeros(1, 6), 90, 160, backend="triton")
+
+
+@pytest.mark.parametrize("locality", [True, False])
+def test_a_cloud_prepared_where_it_renders_is_the_cpu_path_s_cloud(locality, rng):
+    """A sample rendering on a GPU is put in locality order and boxed by tensor operations on its
+    device: the same keys, permutation, colours, ranks and boxes as the CPU path, array for array
+    (here on the CPU: exact copies, points behind the camera and a rank order given)."""
+    points, colors = random_cloud(rng, 30_011)
+    points[:500] = points[500:1000]  # exact copies: ties in the sort keys (the last 500 are behind the camera)
+    rank = torch.from_numpy(rng.permutation(len(points)))
+    K = torch.as_tensor(PAPER_K, dtype=torch.float64)
+    for given in (None, rank):
+        cpu = projection._prepare(points, colors, given, K, 90, 160, locality, 512, None)
+        there = projection._prepare(points, colors, given, K, 90, 160, locality, 512, "cpu")
+        for field in ("points", "rank", "colors", "center", "half"):
+            assert np.array_equal(np.asarray(getattr(cpu, field)), getattr(there, field).numpy()), field

@@ -317,6 +317,8 @@ def _prepared(points, colors, rank, K, height, width, locality: bool, block: int
 
 
 def _prepare(points, colors, rank, K, height, width, locality: bool, block: int, device) -> _Cloud:
+    if device is not None:
+        return _prepare_on(torch.device(device), points, colors, rank, K, height, width, locality, block)
     xyz = np.ascontiguousarray(points.to(torch.float64).cpu().numpy())
     dtype = colors.dtype if colors.is_floating_point() else torch.float32
     table = np.ascontiguousarray(colors.to(dtype).cpu().numpy())
@@ -331,6 +333,49 @@ def _prepare(points, colors, rank, K, height, width, locality: bool, block: int,
     if device is not None:
         arrays = tuple(torch.from_numpy(a).to(device) for a in arrays)
     return _Cloud(*arrays, height, width)
+
+
+def _prepare_on(device, points, colors, rank, K, height, width, locality: bool, block: int) -> _Cloud:
+    """:func:`_prepare` with tensor operations on ``device``, where the cloud already is (a
+    sample rendering on a GPU): the same keys from the same float64 operations, the same stable
+    sort and the same boxes, so the same arrays as the CPU path, without a round trip through it."""
+    xyz = points.to(device=device, dtype=torch.float64)
+    table = colors.to(device=device, dtype=colors.dtype if colors.is_floating_point() else torch.float32)
+    n = xyz.shape[0]
+    ranks = torch.arange(n, device=device) if rank is None else rank.to(device=device, dtype=torch.int64)
+    if locality and n:
+        order = torch.sort(_locality_keys_on(xyz, K, height, width), stable=True).indices
+        xyz, table, ranks = xyz[order], table[order], ranks[order]
+    nb = -(-n // block)
+    padded = torch.full((nb * block, 3), torch.nan, dtype=torch.float64, device=device)
+    padded[:n] = xyz
+    boxes = padded.reshape(nb, block, 3)
+    lo, hi = boxes.nan_to_num(nan=torch.inf).amin(1), boxes.nan_to_num(nan=-torch.inf).amax(1)
+    center, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    return _Cloud(xyz.T.contiguous(), ranks.contiguous(), table.contiguous(), center, half, height, width)
+
+
+def _locality_keys_on(xyz: torch.Tensor, K: torch.Tensor, height: int, width: int, tile: int = 32) -> torch.Tensor:
+    """:func:`_locality_keys` as tensor operations, element for element the same arithmetic."""
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    margin = 4
+    tiles_x = -(-(2 * margin + 1) * width // tile)
+    tiles_y = -(-(2 * margin + 1) * height // tile)
+    tile_bits = int(tiles_x * tiles_y).bit_length()
+    pixel_bits = (tile * tile - 1).bit_length()
+    depth_levels = (1 << (62 - tile_bits - pixel_bits)) - 1
+    x, y, z = xyz.unbind(1)
+    front = z > 0.0
+    far = float(z[front].max()) if bool(front.any()) else 1.0
+    safe = torch.where(front, z, 1.0)
+    u = torch.clamp(torch.floor(fx * (x / safe) + cx), -margin * width, (margin + 1) * width - 1) + margin * width
+    v = torch.clamp(torch.floor(fy * (y / safe) + cy), -margin * height, (margin + 1) * height - 1) + margin * height
+    iu, iv = u.to(torch.int64), v.to(torch.int64)
+    cell = (iv // tile) * tiles_x + iu // tile
+    depth = (torch.clamp(safe / far, max=1.0) * depth_levels).to(torch.int64)
+    keys = (cell << (62 - tile_bits)) | (depth << pixel_bits) | ((iv % tile) * tile + iu % tile)
+    behind = ((1 << tile_bits) - 1) << (62 - tile_bits)
+    return torch.where(front, keys, torch.full_like(keys, behind))
 
 
 def _check_inputs(points, colors, K, motions, height, width) -> None:
