@@ -186,6 +186,18 @@ def to_camera(P, i, R, t):  # pragma: no cover - compiled
     )
 
 
+MARGIN = 4
+"""How far the locality key's tiles extend the image plane: image sizes on each side."""
+
+
+def _key_layout(height: int, width: int, tile: int) -> tuple[int, int, int]:
+    """The locality key's layout: tiles per row of the extended plane, and the bits of the tile
+    number (its largest value, all ones, means "behind the camera") and of the pixel in the tile."""
+    tiles_x = -(-(2 * MARGIN + 1) * width // tile)
+    tiles_y = -(-(2 * MARGIN + 1) * height // tile)
+    return tiles_x, int(tiles_x * tiles_y).bit_length(), (tile * tile - 1).bit_length()
+
+
 def locality_order(points: torch.Tensor, K: torch.Tensor, height: int, width: int, tile: int = 32) -> torch.Tensor:
     """A permutation of ``points`` (N, 3, camera frame) that renders fast whatever order they came in.
 
@@ -204,14 +216,10 @@ def locality_order(points: torch.Tensor, K: torch.Tensor, height: int, width: in
     """
     xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).cpu().numpy())
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    margin = 4  # image sizes of extended plane on each side
-    tiles_x = -(-(2 * margin + 1) * width // tile)
-    tiles_y = -(-(2 * margin + 1) * height // tile)
-    tile_bits = int(tiles_x * tiles_y).bit_length()  # the largest key is "behind the camera"
-    pixel_bits = (tile * tile - 1).bit_length()
+    tiles_x, tile_bits, pixel_bits = _key_layout(height, width, tile)
     keys = np.empty(xyz.shape[0], np.int64)
     _locality_keys(
-        xyz, fx, fy, cx, cy, height, width, tile, margin, tiles_x, tile_bits, pixel_bits, _farthest(xyz), keys
+        xyz, fx, fy, cx, cy, height, width, tile, MARGIN, tiles_x, tile_bits, pixel_bits, _farthest(xyz), keys
     )
     return torch.sort(torch.from_numpy(keys), stable=True).indices
 
@@ -358,11 +366,8 @@ def _prepare_on(device, points, colors, rank, K, height, width, locality: bool, 
 def _locality_keys_on(xyz: torch.Tensor, K: torch.Tensor, height: int, width: int, tile: int = 32) -> torch.Tensor:
     """:func:`_locality_keys` as tensor operations, element for element the same arithmetic."""
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    margin = 4
-    tiles_x = -(-(2 * margin + 1) * width // tile)
-    tiles_y = -(-(2 * margin + 1) * height // tile)
-    tile_bits = int(tiles_x * tiles_y).bit_length()
-    pixel_bits = (tile * tile - 1).bit_length()
+    margin = MARGIN
+    tiles_x, tile_bits, pixel_bits = _key_layout(height, width, tile)
     depth_levels = (1 << (62 - tile_bits - pixel_bits)) - 1
     x, y, z = xyz.unbind(1)
     front = z > 0.0
