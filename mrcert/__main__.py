@@ -18,11 +18,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra import config as mrcert_config
-from mrcert.infra.checkpoints import bind_checkpoint, local_checkpoint, read_checkpoint
-from mrcert.infra.experiment import find_runs
-from mrcert.infra.identity import RunIdentity, identify
+from mrcert.infra.checkpoints import local_checkpoint, read_checkpoint
+from mrcert.infra.identity import RunIdentity
+from mrcert.infra.key_migration import migrate_once
 from mrcert.infra.locks import key_lock
 from mrcert.infra.resumption import log_files_under
+from mrcert.infra.stages import LiveRuns, resolve
 from mrcert.infra.sweeps import fail_parent
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext, finished_run, task_run
@@ -40,17 +41,14 @@ def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
     Every file input is checked here, before any data is prepared or any run is created."""
     task = TASKS[cfg.task.name]
     check_inputs(cfg, task.identity)
-    train_run = None
-    if task.identity.needs_model:
-
-        def newest_train_run(key: str) -> str | None:
-            runs = find_runs(cfg.tracking, key, finished=True, task="train")
-            return runs[0].info.run_id if runs else None
-
-        cfg, train_run = bind_checkpoint(cfg, newest_train_run, TASKS["train"].identity)
-        if train_run is not None:  # a train run's model (a file was checked with the other inputs)
-            read_checkpoint(local_checkpoint(str(cfg.model.checkpoint)))
-    return cfg, identify(cfg, task.identity, train_run)
+    runs = None
+    if cfg.tracking.enabled:
+        runs = LiveRuns(cfg.tracking)
+        migrate_once(runs.client, cfg.tracking.experiment)  # a store keyed before models were named by content
+    cfg, ident = resolve(cfg, runs)
+    if ident.train_run is not None:  # a train run's model (a file was checked with the other inputs)
+        read_checkpoint(local_checkpoint(str(cfg.model.checkpoint)))
+    return cfg, ident
 
 
 def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:

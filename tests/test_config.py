@@ -219,9 +219,9 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
     """Each job of each experiment, with every task it is meant for, composes and validates;
     every model an evaluation job looks up is one that a train job of the experiments makes.
     The fast run takes each experiment's first, second and last job; ``slow`` takes all."""
-    from mrcert.infra.checkpoints import train_key
     from mrcert.infra.config import plain
     from mrcert.infra.identity import identify
+    from mrcert.infra.stages import train_key
     from mrcert.infra.tasks import TASKS
     from mrcert.reporting.experiment_cells import sweep_combos
 
@@ -240,9 +240,7 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
             if task == "train":
                 trained.add(identify(plain(cfg), TASKS["train"].identity).key)
             else:
-                evaluated[train_key(cfg, TASKS["train"].identity)] = (
-                    f"experiment={experiment} task={task} {' '.join(combo)}"
-                )
+                evaluated[train_key(cfg)] = f"experiment={experiment} task={task} {' '.join(combo)}"
     assert {k: v for k, v in evaluated.items() if k not in trained} == {}
 
 

@@ -23,6 +23,7 @@ from tests.test_tables import SETTINGS, run
 
 PAPER = ["experiment=reproduce_paper", "profile=paper", *SETTINGS, "model.variant=vanilla", "motion=tz"]
 CHEAP = ("task.n=200", "task.skip=3")  # a short certification: every cell of the tables gets these too
+MOVED = (GATHERED, "mrcert.output_dir", "mlflow.parentRunId")  # what a copy cannot keep as it is
 
 
 @pytest.fixture(scope="module")
@@ -75,10 +76,9 @@ def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
     there, here = index(gpu_store, "paper"), index(page_store, "paper")
     ours = tables.TABLE3.build(here, name="t")
     assert ours.equals(tables.TABLE3.build(there, name="t")) and ours.notna().any().any()
-    # The copy's certification names the copied model, which loads here.
+    # The cell binds the copied model, which loads here.
     cell = here.cell("reproduce_paper", ("motion=tz", "model.variant=vanilla"), tables.CERTIFIED)
-    train = cell.runs[0]["tags.mrcert.train_run"]
-    assert cell.cfg.model.checkpoint == f"runs:/{train}/checkpoints/best.pt"
+    assert cell.cfg.model.checkpoint == f"runs:/{cell.train_run}/checkpoints/best.pt"
     assert read_checkpoint(local_checkpoint(cell.cfg.model.checkpoint))["arch"] == "small_cnn"
     # Each copy keeps its name, times, params and every metric's history.
     (src, originals), (_, middle), (dst, copies) = runs_of(gpu_store), runs_of(moved), runs_of(page_store)
@@ -93,7 +93,15 @@ def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
             original.info.start_time,
             original.info.end_time,
         )
-        assert copy.data.params.keys() == original.data.params.keys()
+        # Copied as it is: no key, param or config rewritten (MLflow's parent link aside).
+        assert copy.data.params == original.data.params
+        assert {k: v for k, v in copy.data.tags.items() if k not in MOVED} == {
+            k: v for k, v in original.data.tags.items() if k not in MOVED
+        }
+        config = "resolved_config.yaml"
+        assert Path(dst.download_artifacts(copy.info.run_id, config)).read_text() == (
+            Path(src.download_artifacts(original.info.run_id, config)).read_text()
+        )
         for key in original.data.metrics:
             theirs = [(m.step, m.value) for m in src.get_metric_history(original.info.run_id, key)]
             assert [(m.step, m.value) for m in dst.get_metric_history(copy.info.run_id, key)] == theirs

@@ -13,6 +13,7 @@ import pytest
 
 import mrcert
 from mrcert.__main__ import bind, run_task
+from mrcert.infra.identity import file_identity
 from mrcert.reporting.certify_log import read_log
 from tests.conftest import ROOT, TINY, compose_cfg, run_cli
 
@@ -52,7 +53,9 @@ def test_rerunning_a_sweep_keeps_checkpoint_lookup_on_the_trained_model(tmp_path
         (run,) = runs(tmp_path, f"tags.`mrcert.task` = 'certify' and tags.`mrcert.variant` = '{variant}'")
         train = mlflow.get_run(run.data.tags["mrcert.train_run"])
         assert train.data.tags["mrcert.variant"] == variant and train.data.tags["mrcert.multirun"] == "job"
-        assert run.data.tags["mrcert.checkpoint"] == f"runs:/{train.info.run_id}/checkpoints/best.pt"
+        # The model is named by its train run's key and its checkpoint's content, not by a run id.
+        best = Path(train.data.tags["mrcert.output_dir"]) / "best.pt"
+        assert run.data.tags["mrcert.checkpoint"] == f"train:{train.data.tags['mrcert.key']} {file_identity(str(best))}"
         assert run.data.params["checkpoint.train_run_id"] == train.info.run_id
 
 

@@ -8,28 +8,20 @@ model's description (:func:`describe`: architecture, classes, variant, method, a
 resumed run continues from: the same description, the last epoch's weights, the optimiser,
 scheduler and gradient-scaler states, and the best validation result so far.
 
-``model.checkpoint`` may be a file path or an MLflow artifact URI (``runs:/<run_id>/<path>``).
-When it is null, the train config is derived from the evaluation's own config (data, profile,
-model, seed, the recipe in ``train.*``, and the motion for an augmented model), and the
-FINISHED train run with that run key (:mod:`mrcert.infra.identity`) is the model; when there is none,
-the error names the command that trains it. Multirun parent runs have no run key, so they
-never match.
+``model.checkpoint`` may be a file path or an MLflow artifact URI (``runs:/<run_id>/<path>``);
+which model an evaluation reads when it is null, and how that model is named in the
+evaluation's key, is :mod:`mrcert.infra.stages`'s.
 """
 
 from __future__ import annotations
 
-import copy
 import os
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
-from mrcert.infra.config import plain
-from mrcert.infra.identity import Identity, identify
 
 BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
@@ -97,77 +89,6 @@ def selected_epoch(path: Path, model) -> int:
     state = read_checkpoint(path)
     model.load_state_dict(state["model"])
     return int(state["epoch"])
-
-
-def train_key(cfg: DictConfig, train_identity: Identity) -> str:
-    """The run key of the train run (identity ``train_identity``, the train task's) that makes
-    the model ``cfg`` asks for, whatever ``cfg``'s own task."""
-    return identify(plain(cfg) | {"task": {"name": "train"}}, train_identity).key
-
-
-def train_command(cfg: DictConfig) -> str:
-    """The command that trains the model ``cfg`` asks for: this launch's overrides with the
-    task swapped for ``train`` (from Hydra when launched from the command line)."""
-    try:
-        overrides = list(HydraConfig.get().overrides.task)
-    except ValueError:  # composed outside a launch (the API, tests)
-        profile = f" profile={cfg.profile.name}" if "profile" in cfg else ""
-        return (
-            f"mrcert task=train data={cfg.data.name}{profile} model={cfg.model.arch} motion={cfg.motion.axis} "
-            f"model.variant={cfg.model.variant}"
-        )
-    kept = [o for o in overrides if not o.lstrip("+~").startswith(("task=", "task.", "model.checkpoint"))]
-    return " ".join(["mrcert", "task=train", *kept])
-
-
-def run_of(ref: str) -> str | None:
-    """The run id of a ``runs:/<run_id>/...`` reference, else None."""
-    return ref[len("runs:/") :].split("/", 1)[0] if ref.startswith("runs:/") else None
-
-
-def bind_checkpoint(
-    cfg: DictConfig, find_train_run: Callable[[str], str | None], train_identity: Identity
-) -> tuple[DictConfig, str | None]:
-    """``cfg`` with ``model.checkpoint`` set to the one model it evaluates, and that model's
-    train run id (None for a file given by path).
-
-    A given reference is checked now, before any run exists: a file must exist, a ``runs:/``
-    URI must name a run of the store. A null one is looked up by :func:`train_key` through
-    ``find_train_run`` (key -> run id or None)."""
-    ref = cfg.model.get("checkpoint")
-    if ref:
-        ref = str(ref)
-        if ":/" in ref:
-            run_id = run_of(ref)
-            if run_id is None:
-                raise MrcertError(f"model.checkpoint={ref!r} is not allowed: a file path or runs:/<run_id>/<path>")
-            from mrcert.infra.experiment import configure
-
-            try:
-                configure(cfg.tracking).MlflowClient().get_run(run_id)
-            except Exception as exc:  # unknown run, unreachable store
-                raise MrcertError(f"model.checkpoint={ref!r} cannot be fetched from MLflow: {exc}") from None
-            return cfg, run_id
-        if not Path(ref).is_file():
-            raise MrcertError(f"model.checkpoint={ref!r} does not exist; give a file path or runs:/<run_id>/<path>")
-        bound = copy.deepcopy(cfg)
-        bound.model.checkpoint = os.path.abspath(ref)
-        return bound, None
-    if not cfg.tracking.enabled:
-        raise MrcertError(
-            "model.checkpoint is not set and tracking is off, so no train run can be looked up; "
-            "set model.checkpoint=/path/to/best.pt"
-        )
-    run_id = find_train_run(train_key(cfg, train_identity))
-    if run_id is None:
-        axis = f" axis={cfg.motion.axis}" if cfg.model.variant != "vanilla" else ""
-        raise MrcertError(
-            f"no finished train run of model={cfg.model.arch} variant={cfg.model.variant}{axis} with this data, "
-            f"profile, seed and train.* recipe in {cfg.tracking.uri}; train it with: {train_command(cfg)}"
-        )
-    bound = copy.deepcopy(cfg)
-    bound.model.checkpoint = f"runs:/{run_id}/{ARTIFACT_DIR}/{BEST}"
-    return bound, run_id
 
 
 def local_checkpoint(ref: str) -> Path:

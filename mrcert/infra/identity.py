@@ -11,8 +11,9 @@ config into two keys:
   (``task.shard``/``task.num_shards``: a sharded certification is one result in several runs).
 
 A file given by path (a checkpoint, a point cloud, an imported log) is identified by the
-sha256 of its content, so editing the file changes the key; a checkpoint taken from a train
-run is identified by its ``runs:/<run id>/...`` URI, so an evaluation names the exact model.
+sha256 of its content, so editing the file changes the key; the model an evaluation reads is
+identified by its train run's key and its checkpoint's content, never by a store's run id
+(:mod:`mrcert.infra.stages`, which binds it).
 
 Classification is by the longest matching prefix of a dotted key among ``defines`` and
 ``ignores``; a key that neither mentions defines the result (a new key is never silently
@@ -39,6 +40,10 @@ from mrcert.infra.config import plain
 COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent")
 """Where outputs go and how runs are tracked or scheduled, and bounds that only validation
 reads (``data.extent``): never part of a result."""
+
+KEY_SCHEME = ("mrcert.key_scheme", "content")
+"""Tag of a run whose keys name its model by content (:mod:`mrcert.infra.stages`); a run without
+it was keyed by its train run's id, and is migrated (:mod:`mrcert.infra.key_migration`)."""
 
 PARTITION = ("task.shard", "task.num_shards")
 """Keys that split one result over several runs (shards): in the run key, not in the cell key."""
@@ -94,7 +99,7 @@ class RunIdentity:
     train_run: str | None = None
 
     def tags(self) -> dict[str, str]:
-        tags = {"mrcert.key": self.key, "mrcert.cell": self.cell}
+        tags = {"mrcert.key": self.key, "mrcert.cell": self.cell, KEY_SCHEME[0]: KEY_SCHEME[1]}
         if self.checkpoint:
             tags["mrcert.checkpoint"] = self.checkpoint
         if self.train_run:
@@ -178,14 +183,19 @@ def digest(values: Mapping[str, Any]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:32]
 
 
-def identify(cfg: DictConfig | Mapping[str, Any], identity: Identity, train_run: str | None = None) -> RunIdentity:
-    """The run and cell keys of ``cfg`` (its ``model.checkpoint`` already bound when the task
-    needs a model: see :func:`mrcert.infra.checkpoints.bind_checkpoint`)."""
+def identify(cfg: DictConfig | Mapping[str, Any], identity: Identity, model: Any = None) -> RunIdentity:
+    """The run and cell keys of ``cfg``. For a task that evaluates a model, ``model`` is the
+    bound :class:`mrcert.infra.stages.Model`, whose identity stands for ``model.checkpoint``
+    (without one, the value of ``model.checkpoint`` itself, as keys were made before models
+    were named by content: :mod:`mrcert.infra.key_migration` recomputes those)."""
     values = defining_values(cfg, identity) | {"generator_version": GENERATOR_VERSION}
-    checkpoint = None
+    checkpoint = train_run = None
     if identity.needs_model:
+        if model is not None:
+            values["model.checkpoint"] = model.identity
+            train_run = model.train_run
         checkpoint = values.get("model.checkpoint")
         if not checkpoint:
-            raise ValueError("identify() needs model.checkpoint bound for a task that evaluates a model")
+            raise ValueError("identify() needs the model bound for a task that evaluates one (mrcert.infra.stages)")
     cell = {k: v for k, v in values.items() if not any(_matches(k, p) for p in identity.partition)}
     return RunIdentity(digest(values), digest(cell), values, checkpoint, train_run)

@@ -70,6 +70,12 @@ class Tracker:
 
             mlflow.log_metrics({k: float(v) for k, v in metrics.items()}, step=step)
 
+    def set_tags(self, tags: dict[str, str]) -> None:
+        if self.enabled:
+            import mlflow
+
+            mlflow.set_tags(tags)
+
     def log_figure(self, figure, artifact_file: str) -> None:
         """A matplotlib figure, shown by MLflow's UI with the run."""
         if self.enabled:

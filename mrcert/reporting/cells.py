@@ -1,13 +1,14 @@
 """Table cells: each cell is a composed config, and its value comes from exactly the runs of
 that config's cell key (:mod:`mrcert.infra.identity`), or from none.
 
-:class:`RunIndex` holds the FINISHED runs of the store (one MLflow query). For a composed
-config it binds the model the way a task would (the FINISHED train run of the derived train
-key), computes the cell key, and keeps the runs that make one complete result: one run, or
-every shard ``0..N-1`` of one sharded job. Runs with other settings (a ``task.max=2`` smoke
-run, another alpha, another model) have other keys and are never mixed in; an incomplete
-sharded job leaves the cell empty and says which shards are missing. The cell's metrics are
-recomputed from its (merged) per-image logs by the task's own ``summarize``.
+:class:`RunIndex` holds the FINISHED runs of the store (one MLflow query). A composed config is
+resolved as a launch resolves it (:func:`mrcert.infra.stages.resolve`: the model is the
+FINISHED train run of the derived train key, named in the key by content), and the cell keeps
+the runs that make one complete result: one run, or every shard ``0..N-1`` of one sharded job.
+Runs with other settings (a ``task.max=2`` smoke run, another alpha, another model) have other
+keys and are never mixed in; an incomplete sharded job leaves the cell empty and says which
+shards are missing. The cell's metrics are recomputed from its (merged) per-image logs by the
+task's own ``summarize``.
 """
 
 from __future__ import annotations
@@ -25,10 +26,9 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
-from mrcert.infra.checkpoints import bind_checkpoint
 from mrcert.infra.config import CONF_DIR
-from mrcert.infra.identity import identify
 from mrcert.infra.schema import SCHEMAS
+from mrcert.infra.stages import resolve
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting import certify_log
 
@@ -68,6 +68,9 @@ class Cell:
     cfg: DictConfig
     runs: list[pd.Series] = field(default_factory=list)
     note: str = ""
+    train_run: str | None = None
+    """The train run in this store of the model its config evaluates (None for a task that
+    evaluates none, or a model given as a file)."""
 
     @property
     def filled(self) -> bool:
@@ -125,7 +128,11 @@ class RunIndex:
     def gather(cls, experiment: str) -> RunIndex:
         import mlflow
 
-        exp = mlflow.MlflowClient().get_experiment_by_name(experiment)
+        from mrcert.infra.key_migration import migrate_once
+
+        client = mlflow.MlflowClient()
+        migrate_once(client, experiment)
+        exp = client.get_experiment_by_name(experiment)
         if exp is None:
             return cls(pd.DataFrame(columns=["run_id", "start_time", KEY, CELL]))
         df = mlflow.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'")
@@ -135,10 +142,23 @@ class RunIndex:
         df = df[df[CELL].notna()] if len(df) else df
         return cls(df.sort_values("start_time", ascending=False).reset_index(drop=True))
 
-    def train_run(self, key: str) -> str | None:
+    # --- what the resolver reads (mrcert.infra.stages.TrainRuns) ------------------------------
+    def newest_train_run(self, key: str) -> str | None:
         """The newest FINISHED train run with run key ``key``."""
         hits = self.df[(self.df[KEY] == key) & (self.df.get("tags.mrcert.task") == "train")]
         return None if hits.empty else str(hits.iloc[0]["run_id"])
+
+    def run_tags(self, run_id: str) -> dict[str, str] | None:
+        hits = self.df[self.df["run_id"] == run_id]
+        if hits.empty:
+            return None
+        row = hits.iloc[0]
+        return {c[len("tags.") :]: str(row[c]) for c in hits.columns if c.startswith("tags.") and pd.notna(row[c])}
+
+    def artifact(self, run_id: str, path: str) -> Path:
+        import mlflow
+
+        return Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=path))
 
     def cell(self, overrides: Iterable[str]) -> Cell:
         """The cell of the config ``overrides`` compose to (cached per override list)."""
@@ -148,16 +168,12 @@ class RunIndex:
         return self._cache[overrides]
 
     def resolve(self, cfg: DictConfig) -> Cell:
-        task = TASKS[cfg.task.name]
-        train_run = None
-        if task.identity.needs_model:
-            try:
-                cfg, train_run = bind_checkpoint(cfg, self.train_run, TASKS["train"].identity)
-            except MrcertError:
-                return Cell(cfg, note="no finished train run for its model")
-        ident = identify(cfg, task.identity, train_run)
+        try:
+            cfg, ident = resolve(cfg, self)
+        except MrcertError:
+            return Cell(cfg, note="no finished train run for its model")
         runs, note = complete(self.df[self.df[CELL] == ident.cell])
-        return Cell(cfg, runs, note)
+        return Cell(cfg, runs, note, ident.train_run)
 
     def children(self, parent: str) -> list[Cell]:
         """The cells of a sweep's children (by parent run id), one per cell key."""

@@ -132,7 +132,7 @@ def base_models(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
     df = src.index.df.set_index("run_id")
     rows = {}
     for j in jobs:
-        run = j.certify.runs[0].get("tags.mrcert.train_run") if j.certify.filled else None  # None: an import
+        run = j.certify.train_run if j.certify.filled else None  # None: an import
         key = j.variant + (j.axis if j.variant == "augmented" else "")
         if not isinstance(run, str) or run not in df.index or key in rows:
             continue
@@ -273,8 +273,8 @@ def stage_times(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
             if log is not None:
                 images[stage] += len(log)
                 work[stage] += float(log["seconds"].sum()) if "seconds" in log else float("nan")
-            if cell.filled and "tags.mrcert.train_run" in cell.runs[0]:
-                runs["train"].add(str(cell.runs[0]["tags.mrcert.train_run"]))
+            if cell.filled and cell.train_run is not None:
+                runs["train"].add(cell.train_run)
     df = src.index.df.set_index("run_id")
     rows = []
     for stage, ids in runs.items():

@@ -37,8 +37,10 @@ from mrcert.data.holdout import validation_split
 from mrcert.data.sources import load
 from mrcert.errors import MrcertError
 from mrcert.infra import checkpoints
+from mrcert.infra.identity import file_identity
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import resolve_device
+from mrcert.infra.stages import DIGEST_TAG
 from mrcert.infra.tracking import RunContext
 
 log = logging.getLogger(__name__)
@@ -224,4 +226,5 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     ctx.tracker.log_metrics(summary)
     ctx.tracker.log_artifact(best_path, checkpoints.ARTIFACT_DIR)
     ctx.tracker.log_artifact(last_path, checkpoints.ARTIFACT_DIR)
+    ctx.tracker.set_tags({DIGEST_TAG: file_identity(str(best_path))})  # names the model in evaluations' keys
     return summary | history | {"checkpoint": str(best_path)}

@@ -1,0 +1,116 @@
+"""Stores written before models were named by content: their evaluations re-keyed on first use.
+
+An evaluation made before :mod:`mrcert.infra.stages` existed holds in its run and cell keys the
+``runs:/<train run id>/...`` URI of its model, an id that only its own store knows. Migrating a
+run recomputes its keys from its ``resolved_config.yaml`` with the model named by content (its
+train run's key and its checkpoint's digest) and tags it :data:`~mrcert.infra.identity.KEY_SCHEME`,
+so that the same config finds it again: a finished run keeps filling its table cell and is
+skipped by ``skip_finished``, an interrupted one is resumed. A run is re-keyed only when its
+config, read back, gives its recorded key (the config is the one that made it); otherwise it
+keeps its keys and is counted. Its train run is the run of that id, or the copy of it that
+``task=gather`` made (tagged ``mrcert.gathered_from``).
+
+A store is migrated once (the experiment is then tagged :data:`KEY_SCHEME`); ``task=gather``
+migrates what it copies.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from mrcert.infra.identity import KEY_SCHEME, identify
+from mrcert.infra.tasks import TASKS
+
+log = logging.getLogger(__name__)
+
+GATHERED = "mrcert.gathered_from"
+"""Tag of a run ``task=gather`` copied: the id of the run it was copied from."""
+
+
+class _StoreRuns:
+    """:class:`mrcert.infra.stages.TrainRuns` over one experiment's runs, by id or by origin."""
+
+    def __init__(self, client, runs: list):
+        self.client = client
+        self.by_id = {r.info.run_id: r for r in runs}
+        self.copies = {r.data.tags[GATHERED]: r for r in runs if GATHERED in r.data.tags}
+
+    def run(self, run_id: str):
+        return self.by_id.get(run_id) or self.copies.get(run_id)
+
+    def newest_train_run(self, key: str) -> str | None:  # not needed: runs are found by id
+        return None
+
+    def run_tags(self, run_id: str) -> dict[str, str] | None:
+        run = self.run(run_id)
+        return None if run is None else dict(run.data.tags)
+
+    def artifact(self, run_id: str, path: str) -> Path:
+        run = self.run(run_id)
+        return Path(self.client.download_artifacts(run.info.run_id, path))
+
+
+def _config(client, run) -> DictConfig | None:
+    """A run's ``resolved_config.yaml``: from its output folder, else its artifacts (None if gone)."""
+    local = Path(run.data.tags.get("mrcert.output_dir", "")) / "resolved_config.yaml"
+    try:
+        if not local.is_file():
+            local = Path(client.download_artifacts(run.info.run_id, "resolved_config.yaml"))
+        return OmegaConf.load(local)
+    except Exception:  # noqa: BLE001 - a run whose config is gone or unreadable
+        return None
+
+
+def migrate(client, experiment_id: str) -> dict[str, int]:
+    """Re-key every evaluation of the experiment that names its model by run id; counts of
+    ``migrated`` runs and of runs that ``kept`` their keys."""
+    from mrcert.infra.stages import Model, model_identity, run_of
+
+    runs = _all_runs(client, experiment_id)
+    store = _StoreRuns(client, runs)
+    counts = {"migrated": 0, "kept": 0}
+    for run in runs:
+        tags = run.data.tags
+        if "mrcert.train_run" not in tags or tags.get(KEY_SCHEME[0]) == KEY_SCHEME[1]:
+            continue
+        task = TASKS.get(tags.get("mrcert.task", ""))
+        cfg = _config(client, run) if task is not None and task.identity.needs_model else None
+        ref = run_of(str(cfg.model.checkpoint)) if cfg is not None and cfg.model.get("checkpoint") else None
+        try:
+            same = ref is not None and identify(cfg, task.identity).key == tags.get("mrcert.key")
+            model = Model(str(cfg.model.checkpoint), model_identity(store, *ref), ref[0]) if same else None
+        except Exception:  # noqa: BLE001 - a config this version cannot read, a checkpoint that is gone
+            model = None
+        if model is None or store.run(ref[0]) is None:
+            counts["kept"] += 1
+            continue
+        ident = identify(cfg, task.identity, model)
+        for k, v in {**ident.tags(), "mrcert.train_run": tags["mrcert.train_run"]}.items():
+            if tags.get(k) != v:
+                client.set_tag(run.info.run_id, k, v)
+        counts["migrated"] += 1
+    if counts["migrated"] or counts["kept"]:
+        log.info("content keys: %d runs re-keyed, %d kept their keys", counts["migrated"], counts["kept"])
+    return counts
+
+
+def _all_runs(client, experiment_id: str) -> list:
+    runs, token = [], None
+    while True:
+        page = client.search_runs([experiment_id], "", max_results=1000, page_token=token)
+        runs += list(page)
+        token = page.token
+        if not token:
+            return runs
+
+
+def migrate_once(client, experiment: str) -> None:
+    """Migrate the experiment named ``experiment`` unless it is tagged as migrated (then tag it)."""
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None or exp.tags.get(KEY_SCHEME[0]) == KEY_SCHEME[1]:
+        return
+    migrate(client, exp.experiment_id)
+    client.set_experiment_tag(exp.experiment_id, *KEY_SCHEME)
