@@ -2,9 +2,10 @@
 digest), never by a store's run id; a store written before that keeps filling its cells.
 
 The store in ``tests/data/store_before_content_keys.tar.gz`` was made, at ``MADE_AT``, by mrcert
-as it was before content keys, with the commands of ``MADE_WITH`` (its ``mlflow.db`` and
-``mlartifacts`` only). It is unpacked here and its recorded paths pointed at where it now lies,
-as a store copied to another machine would be."""
+as it was before content keys, with the commands of ``MADE_WITH`` and ``INTERRUPTED`` (stopped
+with SIGTERM after 3 of its 18 images): its ``mlflow.db``, ``mlartifacts`` and the interrupted
+run's folder. It is unpacked here and its recorded paths pointed at where it now lies, as a
+store copied to another machine would be."""
 
 import sqlite3
 import tarfile
@@ -35,6 +36,7 @@ MADE_WITH = [  # each with task.batch_size=64 for the evaluations
     [*EVAL, "task=smooth", "model.variant=augmented", "motion=tz"],
 ]
 CELLS = MADE_WITH[2:]
+INTERRUPTED = [*RECIPE, "task=certify", "model.variant=vanilla", "task.n=1000", "task.skip=1"]
 
 
 def unpack(into: Path) -> Path:
@@ -44,6 +46,7 @@ def unpack(into: Path) -> Path:
     with sqlite3.connect(into / "mlflow.db") as db:
         db.execute("update runs set artifact_uri = replace(artifact_uri, ?, ?)", (MADE_AT, str(into)))
         db.execute("update experiments set artifact_location = replace(artifact_location, ?, ?)", (MADE_AT, str(into)))
+        db.execute("update tags set value = replace(value, ?, ?) where key = 'mrcert.output_dir'", (MADE_AT, str(into)))
     return into
 
 
@@ -62,7 +65,7 @@ def recorded(out: Path) -> dict[str, dict]:
             "log": read_log(client.download_artifacts(r.info.run_id, r.data.tags["mrcert.task"] + ".tsv"), ["idx"]),
         }
         for r in runs.values()
-        if r.data.tags["mrcert.task"] != "train"
+        if r.data.tags["mrcert.task"] != "train" and r.info.status == "FINISHED"
     }
 
 
@@ -88,6 +91,19 @@ def test_a_store_made_before_content_keys_fills_the_same_cells_and_skips_its_fin
     done = run_task(cfg, old_store / "runs" / "again")
     assert done["certified_accuracy"] == idx.metric(idx.cell(CELLS[0]), "certified_accuracy")
     assert len(runs_of(old_store)[1]) == len(runs) and not (old_store / "runs" / "again").exists()
+
+
+def test_a_run_interrupted_before_content_keys_resumes_with_the_rows_it_logged(old_store):
+    folder = old_store / "runs" / "interrupted"
+    logged = (folder / "certify.tsv").read_text().splitlines()
+    assert len(logged) == 1 + 3
+    client, runs = runs_of(old_store)
+    (killed,) = [r for r in runs.values() if r.info.status == "KILLED"]
+    run_task(compose_cfg([*INTERRUPTED, "task.batch_size=64"], old_store), old_store / "runs" / "resumed")
+    assert client.get_run(killed.info.run_id).info.status == "FINISHED"  # the same run, resumed
+    rows = (folder / "certify.tsv").read_text().splitlines()
+    assert len(rows) == 1 + 18 and [r.split("\t")[:6] for r in rows[1:4]] == [r.split("\t")[:6] for r in logged[1:]]
+    assert not (folder / "set_aside").exists()  # none of its rows refused
 
 
 def test_runs_gathered_from_a_store_made_before_content_keys_fill_their_cells(old_store, tmp_path):

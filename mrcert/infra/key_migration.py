@@ -5,7 +5,8 @@ An evaluation made before :mod:`mrcert.infra.stages` existed holds in its run an
 run recomputes its keys from its ``resolved_config.yaml`` with the model named by content (its
 train run's key and its checkpoint's digest) and tags it :data:`~mrcert.infra.identity.KEY_SCHEME`,
 so that the same config finds it again: a finished run keeps filling its table cell and is
-skipped by ``skip_finished``, an interrupted one is resumed. A run is re-keyed only when its
+skipped by ``skip_finished``, an interrupted one is resumed with the rows it logged (its
+per-image log is bound to the new key: :func:`mrcert.infra.log_keys.rekey`). A run is re-keyed only when its
 config, read back, gives its recorded key (the config is the one that made it); otherwise it
 keeps its keys and is counted. Its train run is the run of that id, or the copy of it that
 ``task=gather`` made (tagged ``mrcert.gathered_from``).
@@ -22,6 +23,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from mrcert.infra.identity import KEY_SCHEME, identify
+from mrcert.infra.log_keys import rekey
 from mrcert.infra.tasks import TASKS
 
 log = logging.getLogger(__name__)
@@ -88,6 +90,9 @@ def migrate(client, experiment_id: str) -> dict[str, int]:
             counts["kept"] += 1
             continue
         ident = identify(cfg, task.identity, model)
+        folder = tags.get("mrcert.output_dir")
+        if task.log and folder:  # its per-image log follows it: an interrupted run resumes its rows
+            rekey(Path(folder) / task.log, run.info.run_id, tags["mrcert.key"], ident.key)
         for k, v in {**ident.tags(), "mrcert.train_run": tags["mrcert.train_run"]}.items():
             if tags.get(k) != v:
                 client.set_tag(run.info.run_id, k, v)

@@ -10,8 +10,6 @@ Metrics and the certified-accuracy curve are computed from the exact step functi
 from __future__ import annotations
 
 import datetime
-import hashlib
-import json
 import logging
 import os
 import time
@@ -22,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from mrcert.errors import MrcertError
+from mrcert.infra.log_keys import CHECK, check_value, owner_path, read_owner, write_owner
 from mrcert.infra.tasks import CERTIFY_COLUMNS, TASKS
 
 log = logging.getLogger(__name__)
@@ -36,16 +35,6 @@ def format_row(row: dict, columns: list[str]) -> str:
     if "time" in columns:
         values["time"] = str(datetime.timedelta(seconds=float(row["seconds"])))
     return "\t".join(repr(v) if isinstance(v, float) else str(v) for v in (values[c] for c in columns))
-
-
-CHECK = "check"
-"""The last column of every per-image log a run writes: the row's check value."""
-
-
-def check_value(key: str, line: str) -> str:
-    """The check value of a log line (its cells before the check) written for run key ``key``:
-    a hash of both, so that a row changed, cut short or copied from another run's log fails."""
-    return hashlib.sha256(f"{key}\n{line}".encode()).hexdigest()[:16]
 
 
 class ResultLog:
@@ -70,13 +59,13 @@ class ResultLog:
 
     @property
     def owner_path(self) -> Path:
-        return self.path.with_name(self.path.name + ".owner")
+        return owner_path(self.path)
 
     def _claim(self) -> None:
         """Make the file this run's: set aside another run's log, take back this run's own."""
         if self._claimed:
             return
-        theirs = _read_owner(self.owner_path)
+        theirs = read_owner(self.owner_path)
         if theirs != self.owner and (self.path.exists() or self.owner_path.exists()):
             aside = self._aside((theirs or {}).get("run_id") or "unknown-run")
             for f in (self.path, self.owner_path):
@@ -90,16 +79,14 @@ class ResultLog:
             )
         if not self.path.exists():  # this run's rows may have been set aside by another run
             kept = (self.path.parent / SET_ASIDE).glob(f"*/{self.owner_path.name}")
-            mine = sorted((k for k in kept if _read_owner(k) == self.owner), reverse=True)
+            mine = sorted((k for k in kept if read_owner(k) == self.owner), reverse=True)
             newest = next((k.parent for k in mine if (k.parent / self.path.name).exists()), None)
             if newest is not None:
                 os.replace(newest / self.path.name, self.path)
                 log.info("took back this run's own rows from %s", newest)
             for k in mine:  # taken back (or never held rows): no second copy left behind
                 k.unlink()
-        tmp = self.owner_path.with_name(self.owner_path.name + f".tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(self.owner, sort_keys=True) + "\n")
-        os.replace(tmp, self.owner_path)
+        write_owner(self.owner_path, self.owner)
         self._claimed = True
 
     def _aside(self, name: str) -> Path:
@@ -189,13 +176,6 @@ class ResultLog:
 
 SET_ASIDE = "set_aside"
 """Where a run folder keeps per-image logs of other runs that were found in it."""
-
-
-def _read_owner(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
 
 
 def _describe(owner: dict | None) -> str:
