@@ -83,16 +83,17 @@ def defines_the_result(task: str, cfg: dict, key: str) -> bool:
     if task == "render":
         return not under("model", "train", "attack", "task.backend")
     if task == "viewpoints":
-        return not under("train", "attack", "motion", "method", "task.batch_size")
+        return not under("train", "model.trained_for", "attack", "motion", "method", "task.batch_size")
     if task == "train":  # the recipe, the data, the model and what it is augmented with
         if under("task"):
             return key == "task.name"
         vanilla = cfg["model"]["variant"] == "vanilla"
         pixel_noise = cfg["method"]["name"] == "pixelwise"  # one pixel-noise model serves every axis
         unseen = under("motion") and (vanilla or pixel_noise) or under("method") and vanilla
-        return not (under("model.checkpoint", "attack", "method.certify") or unseen)
-    # certify, smooth, attack: an evaluation of a trained model (named by its checkpoint)
-    if under("train", *HOW_IT_EVALUATES) or (under("attack") and task != "attack"):
+        return not (under("model.checkpoint", "model.trained_for", "attack", "method.certify") or unseen)
+    # certify, smooth, attack: an evaluation of a trained model (named by its checkpoint, which
+    # says how and for which method it was trained)
+    if under("train", "model.trained_for", *HOW_IT_EVALUATES) or (under("attack") and task != "attack"):
         return False
     return not (task == "certify" and key == "task.look" and not cfg["task"]["sequential"])
 

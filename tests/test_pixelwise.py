@@ -13,10 +13,11 @@ from mrcert.core.methods import build_method
 from mrcert.core.pixelwise import PixelNoise, PixelwiseSmoothing, frame_motions, interval_certified, piece_bounds
 from mrcert.core.projection import project
 from mrcert.data.sources import load
-from mrcert.errors import ConfigError
+from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.config import validate
 from mrcert.infra.identity import identify
+from mrcert.infra.stages import train_key
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting.certify_log import read_log
 from mrcert.tasks.train import accuracy, as_tensors, evaluate
@@ -198,6 +199,22 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     assert len(certify) == 1 and certify.iloc[0]["params.method.name"] == "pixelwise"
     trained = runs[runs["tags.mrcert.task"] == "train"].iloc[0]
     assert certify.iloc[0]["tags.mrcert.train_run"] == trained["run_id"]  # bound to the pixel-noise model
+    # Camera motion smoothing on that same pixel-noise model (the authors' like-for-like reference):
+    # model.trained_for names the method it was trained for; nothing is trained again.
+    noise = "model.trained_for={name:pixelwise,sigma:0.25}"
+    motion = [*TINY, *RECIPE, "task=certify", "model.variant=augmented", noise, "task.n0=8", "task.n=40", "task.max=2"]
+    run_task(compose_cfg(motion, tmp_path), tmp_path / "m")
+    runs = mlflow.search_runs(search_all_experiments=True, filter_string="attributes.status = 'FINISHED'")
+    (same_model,) = runs[(runs["tags.mrcert.task"] == "certify") & (runs["params.method.name"] == "motion")].iloc
+    assert (
+        same_model["tags.mrcert.train_run"] == trained["run_id"] and len(runs[runs["tags.mrcert.task"] == "train"]) == 1
+    )
+    assert same_model["tags.mrcert.checkpoint"] == certify.iloc[0]["tags.mrcert.checkpoint"]
+    assert set(read_log(tmp_path / "m" / "certify.tsv").sigma_unit) == {"m"}  # smoothed over motions
+    # Without it, the motion-augmented model is asked for, which was never trained: the error
+    # names the command that trains it.
+    with pytest.raises(MrcertError, match="mrcert task=train .*model.variant=augmented"):
+        run_task(compose_cfg([m for m in motion if m != noise], tmp_path), tmp_path / "n")
 
 
 def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_path):
@@ -209,6 +226,9 @@ def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_pa
     assert key(["model.variant=augmented", "method=motion"]) == motion
     assert key(["model.variant=vanilla", "method=pixelwise"]) == key(["model.variant=vanilla"])  # one vanilla model
     pixelwise = key(["model.variant=augmented", "method=pixelwise"])
+    # An evaluation's model trained for another method: that method's train run.
+    noise = compose_cfg(["task=certify", "model.variant=augmented", "model.trained_for={name:pixelwise,sigma:0.25}"])
+    assert train_key(noise) == pixelwise != train_key(compose_cfg(["task=certify", "model.variant=augmented"]))
     assert key(["model.variant=augmented", "method=pixelwise", "method.certify.frames=5"]) == pixelwise
     assert key(["model.variant=augmented", "method=pixelwise", "method.sigma=0.5"]) != pixelwise
     # Pixel noise never sees the motion: one pixel-noise model serves every axis.

@@ -264,6 +264,44 @@ def _method(cfg: DictConfig, data: dict) -> None:
         raise ConfigError("task.sequential", True, f"false with method={name} (sequential CERTIFY certifies one view)")
 
 
+def trained_for(data: dict) -> dict | None:
+    """The method the model that ``data`` (a plain config) evaluates was trained for, when it is
+    not the evaluation's own (``model.trained_for``: that method's training settings, as
+    ``method.*`` would give them), checked against the method's schema; else None."""
+    from mrcert.core.methods import registered
+
+    value = data.get("model", {}).get("trained_for")
+    if value is None:
+        return None
+    allowed = "a method's training settings, e.g. {name: pixelwise, sigma: 0.25} or {name: motion}"
+    if not isinstance(value, dict) or "name" not in value:
+        raise ConfigError("model.trained_for", value, allowed)
+    try:
+        schema = OmegaConf.structured(registered(str(value["name"])).schema)
+    except ConfigError as exc:
+        raise ConfigError("model.trained_for.name", value["name"], exc.allowed) from None
+    try:
+        merged = OmegaConf.merge(schema, value)
+    except Exception:  # noqa: BLE001 - an unknown key or a value of the wrong type
+        raise ConfigError("model.trained_for", value, f"{allowed}; keys: {', '.join(schema)}") from None
+    unset = [k for k in merged if k != "certify" and OmegaConf.is_missing(merged, k)]
+    if unset:
+        raise ConfigError("model.trained_for", value, f"{allowed}; it lacks {', '.join(unset)}")
+    return value
+
+
+def _trained_for(data: dict) -> None:
+    """``model.trained_for`` names a method's training settings, for an evaluation only."""
+    value = data.get("model", {}).get("trained_for")
+    if value is not None and data.get("task", {}).get("name") == "train":
+        raise ConfigError(
+            "model.trained_for",
+            value,
+            "null for task=train (it picks an evaluation's model); train for a method with method=...",
+        )
+    trained_for(data)
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded)."""
     _unknown_top_level(cfg)
@@ -291,6 +329,7 @@ def validate(cfg: DictConfig) -> None:
     motion = data.get("motion", {})
     _motion_scale(motion, data.get("data", {}))
     _method(cfg, data)
+    _trained_for(data)
     if "model" in data:
         from mrcert.core.models import check_net
 

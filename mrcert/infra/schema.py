@@ -223,6 +223,7 @@ class Model:
     net: Any = MISSING  # instantiated from its _target_ (any nn.Module taking num_classes)
     variant: str = MISSING
     checkpoint: str | None = None
+    trained_for: Any = None  # a method's training settings ({name: pixelwise, sigma: 0.25}): see mrcert.infra.stages
 
 
 @dataclass

@@ -34,7 +34,7 @@ from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import ARTIFACT_DIR, BEST
-from mrcert.infra.config import plain
+from mrcert.infra.config import plain, trained_for
 from mrcert.infra.identity import RunIdentity, file_identity, identify
 from mrcert.infra.tasks import TASKS
 
@@ -66,9 +66,19 @@ class TrainRuns(Protocol):
         """A run's artifact as a local file (downloaded when the store is remote)."""
 
 
+def train_config(cfg: DictConfig) -> dict:
+    """The config of the train run that makes the model ``cfg`` asks for, whatever ``cfg``'s
+    task: ``cfg`` as a train task, trained for ``model.trained_for`` when that is set."""
+    data = plain(cfg) | {"task": {"name": "train"}}
+    method = trained_for(data)
+    if method is not None:
+        data["method"] = method
+    return data
+
+
 def train_key(cfg: DictConfig) -> str:
-    """The run key of the train run that makes the model ``cfg`` asks for, whatever ``cfg``'s task."""
-    return identify(plain(cfg) | {"task": {"name": "train"}}, TASKS["train"].identity).key
+    """The run key of the train run that makes the model ``cfg`` asks for."""
+    return identify(train_config(cfg), TASKS["train"].identity).key
 
 
 def model_identity(runs: TrainRuns, run_id: str, path: str = BEST_PATH) -> str:
@@ -93,16 +103,24 @@ def run_of(ref: str) -> tuple[str, str] | None:
 
 def train_command(cfg: DictConfig) -> str:
     """The command that trains the model ``cfg`` asks for: this launch's overrides with the
-    task swapped for ``train`` (from Hydra when launched from the command line)."""
+    task swapped for ``train`` (from Hydra when launched from the command line), and the method
+    set to ``model.trained_for`` when that is given."""
+    method = trained_for(plain(cfg))
     try:
         overrides = list(HydraConfig.get().overrides.task)
     except ValueError:  # composed outside a launch (the API, tests)
-        profile = f" profile={cfg.profile.name}" if "profile" in cfg else ""
-        return (
-            f"mrcert task=train data={cfg.data.name}{profile} model={cfg.model.arch} motion={cfg.motion.axis} "
-            f"model.variant={cfg.model.variant}"
-        )
-    kept = [o for o in overrides if not o.lstrip("+~").startswith(("task=", "task.", "model.checkpoint"))]
+        profile = f"profile={cfg.profile.name}" if "profile" in cfg else ""
+        overrides = [
+            f"data={cfg.data.name}",
+            profile,
+            f"model={cfg.model.arch}",
+            f"motion={cfg.motion.axis}",
+            f"model.variant={cfg.model.variant}",
+        ]
+    dropped = ("task=", "task.", "model.checkpoint", "model.trained_for") + (("method",) if method else ())
+    kept = [o for o in overrides if o and not o.lstrip("+~").startswith(dropped)]
+    if method:  # the method it was trained for, as a train command sets it
+        kept += [f"method={method['name']}"] + [f"method.{k}={v}" for k, v in method.items() if k != "name"]
     return " ".join(["mrcert", "task=train", *kept])
 
 

@@ -82,8 +82,17 @@ CERTIFY_COLUMNS = ("idx", "label", "predict", "radius", "correct", "time")
 DATA_FILES = ("data.path", "data.poses")
 EVALUATION = Identity(
     defines=("task", "data", "model", "motion", "method", "seed", "profile"),
-    # The recipe in train.* is named by the checkpoint's identity; the crop is exact.
-    ignores=("train", "attack", "task.batch_size", "task.backend", "task.resume", "task.crop_sigmas"),
+    # The recipe in train.* and the method the model was trained for are named by the
+    # checkpoint's identity; the crop is exact.
+    ignores=(
+        "train",
+        "model.trained_for",
+        "attack",
+        "task.batch_size",
+        "task.backend",
+        "task.resume",
+        "task.crop_sigmas",
+    ),
     files=("model.checkpoint", *DATA_FILES),
     partition=PARTITION,
     needs_model=True,
@@ -109,7 +118,8 @@ TASKS: dict[str, Task] = {
         "train a vanilla or motion-augmented base classifier",
         Identity(
             defines=("task.name", "data", "model", "train", "motion", "method", "seed", "profile"),
-            ignores=("task", "model.checkpoint", "attack", "method.certify"),  # a method's certify.* never trains
+            # A method's certify.* never trains; model.trained_for is refused here (an evaluation's).
+            ignores=("task", "model.checkpoint", "model.trained_for", "attack", "method.certify"),
             ignore_when=(  # a vanilla model never sees a motion or a method
                 ("model.variant", "vanilla", "motion"),
                 ("model.variant", "vanilla", "method"),
@@ -186,7 +196,7 @@ TASKS: dict[str, Task] = {
         # The base classifier alone, identified by its checkpoint's content: no smoothing, no motion.
         Identity(
             defines=("task", "data", "model", "seed", "profile"),
-            ignores=("train", "attack", "motion", "method", "task.batch_size"),
+            ignores=("train", "model.trained_for", "attack", "motion", "method", "task.batch_size"),
             files=("model.checkpoint", *DATA_FILES),
             needs_model=True,
         ),
