@@ -27,6 +27,7 @@ from mrcert.infra.stages import LiveRuns, resolve
 from mrcert.infra.sweeps import fail_parent
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext, finished_run, task_run
+from mrcert.tasks import run_function
 from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")
@@ -68,7 +69,7 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
             if done is not None:
                 log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
                 return dict(done.data.metrics)
-            func = task.load()
+            func = run_function(cfg.task.name)
             with task_run(cfg, output_dir, ident) as tracker:
                 result = func(cfg, RunContext(tracker.output_dir, tracker))
     except BaseException:

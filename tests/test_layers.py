@@ -2,6 +2,7 @@
 and no module imports itself back through others (no import cycles, lazy imports included)."""
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent / "mrcert"
@@ -86,3 +87,42 @@ def test_no_import_cycles():
         if v not in index:
             visit(v)
     assert cycles == []
+
+
+MODULE_NAME = re.compile(r"\bmrcert\.(\w+)")
+
+
+def named_in_strings(path: Path) -> set[str]:
+    """The mrcert layers a module names in its string constants (``"mrcert.tasks.x:run"``, what
+    an import test cannot see), its docstrings aside (bare strings: cross-references for the reader)."""
+    tree = ast.parse(path.read_text())
+    prose = {
+        id(node.value) for node in ast.walk(tree) if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant)
+    }
+    return {
+        name
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in prose
+        for name in MODULE_NAME.findall(node.value)
+        if name in ALLOWED
+    }
+
+
+def test_no_layer_names_a_layer_above_it_in_a_string():
+    wrong = sorted(
+        (m, name)
+        for m, path in MODULES.items()
+        if layer(m) in ALLOWED
+        for name in named_in_strings(path)
+        if name not in ALLOWED[layer(m)] | {layer(m)}
+    )
+    assert wrong == []
+
+
+def test_every_task_runs_and_every_log_is_summarised_by_its_name():
+    from mrcert.infra.tasks import TASKS
+    from mrcert.reporting.metrics import SUMMARIES
+    from mrcert.tasks import run_function
+
+    assert all(callable(run_function(name)) for name in TASKS)
+    assert set(SUMMARIES) == {name for name, task in TASKS.items() if task.log}

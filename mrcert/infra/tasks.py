@@ -1,32 +1,24 @@
-"""The one table of tasks: name -> everything about a task that is not its computation -- the
-function that runs it, what defines its result (its :class:`~mrcert.infra.identity.Identity`),
-the per-image log it writes and that log's columns, the headline metrics computed from that log
-(what its MLflow run logs when it ends and what a table cell shows), the metrics the runs page
-shows, and the run's name.
+"""The one table of tasks: name -> what a task is, apart from its computation -- what defines
+its result (its :class:`~mrcert.infra.identity.Identity`), the per-image log it writes and that
+log's columns, the headline metrics the MLflow runs page shows, and the run's name.
 
-Each entry names its functions lazily (``"module:function"``) so that ``mrcert --help`` and
-config validation do not import torch-heavy code. A task function takes the composed config
-and a :class:`~mrcert.infra.tracking.RunContext` and returns a dict of headline metrics.
+The computations live above this layer and are found by the task's name: its ``run(cfg, ctx)``
+in :mod:`mrcert.tasks` (:func:`mrcert.tasks.run_function`), and the headline metrics of its
+per-image log in :mod:`mrcert.reporting.metrics` (:func:`mrcert.reporting.metrics.summarize`).
 """
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from mrcert.infra.identity import PARTITION, Identity
 
-if TYPE_CHECKING:
-    import pandas as pd
-
 
 @dataclass(frozen=True)
 class Task:
-    target: str
     summary: str
     identity: Identity
     """Which config keys define the task's result (see :mod:`mrcert.infra.identity`)."""
@@ -36,26 +28,10 @@ class Task:
     """The per-image log the task writes (in its run folder and artifacts), for tables and shards."""
     columns: tuple[str, ...] = ()
     """The log's columns, in order."""
-    metrics: str | None = None
-    """``"module:function"``: ``(log, cfg) -> dict``, the headline metrics of a (whole, or merged
-    from shards) log: what the run logs when it ends and what a table cell shows."""
     headline: tuple[str, ...] = ()
-    """Of those, the ones the MLflow runs page shows as columns."""
+    """Of the headline metrics of its log, the ones the MLflow runs page shows as columns."""
     title: Callable[[DictConfig], str] = lambda cfg: f"{cfg.task.name} {cfg.data.name}"
     """The run's name: what it is, in words, what tells runs apart first (the runs page cuts long names)."""
-
-    def load(self) -> Callable[[DictConfig, Any], dict[str, Any]]:
-        """The task's function: ``(cfg, RunContext) -> headline metrics``."""
-        return _function(self.target)
-
-    def summarize(self, log: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
-        """The headline metrics of the task's per-image ``log``."""
-        return _function(self.metrics)(log, cfg)
-
-
-def _function(target: str) -> Callable:
-    module, func = target.split(":")
-    return getattr(importlib.import_module(module), func)
 
 
 def _model_title(cfg: DictConfig) -> str:
@@ -104,7 +80,6 @@ HELPER_IGNORES = ("data", "model", "motion", "method", "seed", "profile", "train
 
 TASKS: dict[str, Task] = {
     "render": Task(
-        "mrcert.tasks.render:run",
         "render a scene under motions, or a dataset's images into the cache",
         Identity(
             defines=("task", "data", "motion", "method", "seed", "profile"),
@@ -114,7 +89,6 @@ TASKS: dict[str, Task] = {
         ),
     ),
     "train": Task(
-        "mrcert.tasks.train:run",
         "train a vanilla or motion-augmented base classifier",
         Identity(
             defines=("task.name", "data", "model", "train", "motion", "method", "seed", "profile"),
@@ -131,7 +105,6 @@ TASKS: dict[str, Task] = {
         title=_model_title,
     ),
     "certify": Task(
-        "mrcert.tasks.certify:run",
         "CERTIFY each test image of the smoothed classifier (certify.tsv)",
         replace(EVALUATION, ignore_when=(("task.sequential", False, "task.look"),)),  # fixed n: no looks
         log="certify.tsv",
@@ -149,22 +122,18 @@ TASKS: dict[str, Task] = {
             "radius_unit",
             "sigma_unit",
         ),
-        metrics="mrcert.reporting.metrics:certify",
         headline=("certified_accuracy", "clean_accuracy", "mean_samples"),
         title=_model_title,
     ),
     "smooth": Task(
-        "mrcert.tasks.smooth:run",
         "smoothed benign accuracy: PREDICT at each test pose",
         EVALUATION,
         log="smooth.tsv",
         columns=("idx", "label", "predict", "correct", "n", "axis", "seconds"),
-        metrics="mrcert.reporting.metrics:smooth",
         headline=("smoothed_benign_accuracy",),
         title=_model_title,
     ),
     "attack": Task(
-        "mrcert.tasks.attack:run",
         "K-perturbed empirical robust accuracy, base and smoothed",
         replace(
             EVALUATION,
@@ -186,12 +155,10 @@ TASKS: dict[str, Task] = {
             "motion_unit",
             "seconds",
         ),
-        metrics="mrcert.reporting.metrics:attack",
         headline=("smoothed_robust_accuracy", "base_benign_accuracy"),
         title=_model_title,
     ),
     "viewpoints": Task(
-        "mrcert.tasks.viewpoints:run",
         "a base classifier's accuracy by camera pitch and roll (synthetic scenes)",
         # The base classifier alone, identified by its checkpoint's content: no smoothing, no motion.
         Identity(
@@ -204,14 +171,12 @@ TASKS: dict[str, Task] = {
         title=lambda cfg: f"viewpoints {cfg.model.variant} {cfg.model.arch}",
     ),
     "tables": Task(
-        "mrcert.tasks.tables:run",
         "the paper's tables and figure from finished MLflow runs",
         Identity(defines=("task", "profile"), ignores=("data", "model", "motion", "method", "seed", "attack", "train")),
         reusable=False,  # its result depends on the store's runs, not only on its config
         title=lambda cfg: f"tables {cfg.task.experiment or 'paper'}",
     ),
     "import": Task(
-        "mrcert.tasks.importer:run",
         "record a certify log computed elsewhere as an MLflow run",
         # The log's metadata (task.dataset, task.arch, ...) is all it is; one cell may hold one log.
         Identity(
@@ -222,12 +187,10 @@ TASKS: dict[str, Task] = {
         ),
         log="certify.tsv",
         columns=CERTIFY_COLUMNS,  # what an imported log needs
-        metrics="mrcert.reporting.metrics:imported",
         headline=("certified_accuracy", "clean_accuracy"),
         title=lambda cfg: f"import {cfg.task.axis} {cfg.task.arch} {cfg.task.variant}",
     ),
     "gather": Task(
-        "mrcert.tasks.gather:run",
         "copy the finished runs of another store into this one",
         # What it copies depends on the other store's runs, not only on its config.
         Identity(

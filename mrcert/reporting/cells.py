@@ -30,7 +30,7 @@ from mrcert.infra.config import CONF_DIR
 from mrcert.infra.schema import SCHEMAS
 from mrcert.infra.stages import resolve
 from mrcert.infra.tasks import TASKS
-from mrcert.reporting import certify_log
+from mrcert.reporting import certify_log, metrics
 
 KEY, CELL = "tags.mrcert.key", "tags.mrcert.cell"
 
@@ -203,7 +203,7 @@ class RunIndex:
         log = self.log(cell)
         if log is None:
             return float("nan")
-        return float(TASKS[str(cell.cfg.task.name)].summarize(log, cell.cfg).get(name, float("nan")))
+        return float(metrics.summarize(str(cell.cfg.task.name), log, cell.cfg).get(name, float("nan")))
 
 
 def _run_config(run: pd.Series) -> DictConfig:

@@ -1,6 +1,6 @@
 """The headline metrics of each task's per-image log (whole, or merged from shards): what a task
-logs when it ends and what a table cell shows, computed by the same function (the task table,
-:data:`mrcert.infra.tasks.TASKS`, names each task's)."""
+logs when it ends and what a table cell shows, computed by the same function
+(:func:`summarize`, by the task's name)."""
 
 from __future__ import annotations
 
@@ -51,3 +51,12 @@ def attack(df: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
     if cfg.task.smoothed:
         metrics["smoothed_robust_accuracy"] = float((df["smoothed_robust"] == 1).mean())
     return metrics
+
+
+SUMMARIES = {"certify": certify, "import": imported, "smooth": smooth, "attack": attack}
+"""Each task that writes a per-image log (:data:`mrcert.infra.tasks.TASKS`), and its headline metrics."""
+
+
+def summarize(task: str, log: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
+    """The headline metrics of task ``task``'s per-image ``log``."""
+    return SUMMARIES[task](log, cfg)

@@ -25,6 +25,7 @@ from mrcert.infra.runtime import batch_size, render_batch, resolve_device
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting.certify_log import ResultLog, read_log
+from mrcert.reporting.metrics import summarize as headline_metrics
 
 
 def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards: int) -> list[int]:
@@ -82,8 +83,8 @@ def result_log(ctx: RunContext, task: str) -> ResultLog:
 
 
 def summarize(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[str, float]:
-    """The task's headline metrics of its finished per-image log (the task table's), logged with the log."""
-    metrics = TASKS[task].summarize(read_log(log, list(TASKS[task].columns)), cfg)
+    """The task's headline metrics of its finished per-image log, logged with the log."""
+    metrics = headline_metrics(task, read_log(log, list(TASKS[task].columns)), cfg)
     log_outputs(ctx, metrics, log)
     return metrics
 
