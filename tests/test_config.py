@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from mrcert.errors import ConfigError
-from mrcert.infra.config import CONF_DIR, validate
+from mrcert.infra.config import CONF_DIR, plain, validate
 from mrcert.infra.identity import flatten
 from tests.conftest import run_cli
 
@@ -26,11 +26,9 @@ def compose_cfg(overrides: list[str]):
         return compose("config", overrides=overrides, return_hydra_config=True)
 
 
-# Overlay groups are selected by what they overlay (``${task}_${experiment}``, ``${data}_${profile}``, ...).
+# An overlay group is selected by what it overlays (``${task}_${experiment}``).
 OVERLAYS = {
     "task_experiment": lambda o: [f"task={o.split('_', 1)[0]}", f"experiment={o.split('_', 1)[1]}"],
-    "data_profile": lambda o: [f"data={o.rsplit('_', 1)[0]}", f"profile={o.rsplit('_', 1)[1]}"],
-    "train_profile": lambda o: [f"profile={o}"],
 }
 REQUIRED = {
     ("data", "pointcloud"): ["data.path=scan.ply"],
@@ -53,8 +51,6 @@ def option_file(group: str, option: str) -> tuple[str, dict]:
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
 def test_every_option_composes_to_its_own_values_and_validates(group, option):
     selection = OVERLAYS[group](option) if group in OVERLAYS else [f"{group}={option}"]
-    if group == "data_profile" or group == "train_profile":
-        selection.append("profile=quick") if "profile=quick" not in selection else None
     cfg = compose_cfg([*selection, *REQUIRED.get((group, option), [])])
     assert cfg.hydra.runtime.choices[group] == option
     package, values = option_file(group, option)
@@ -219,7 +215,6 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
     """Each job of each experiment, with every task it is meant for, composes and validates;
     every model an evaluation job looks up is one that a train job of the experiments makes.
     The fast run takes each experiment's first, second and last job; ``slow`` takes all."""
-    from mrcert.infra.config import plain
     from mrcert.infra.identity import identify
     from mrcert.infra.stages import train_key
     from mrcert.infra.tasks import TASKS
@@ -303,16 +298,29 @@ def test_table_links_follow_the_ui_port(monkeypatch):
 
 def test_the_defaults_order_is_read_from_the_root_config():
     """The order the overlay check relies on is the root config's, method and hydra included."""
-    assert DEFAULTS_ORDER[:3] == ["task", "data", "profile"] and DEFAULTS_ORDER[-1] == "task_experiment"
+    assert DEFAULTS_ORDER[:4] == ["task", "data", "profile", "train"] and DEFAULTS_ORDER[-1] == "task_experiment"
     assert DEFAULTS_ORDER.index("motion") < DEFAULTS_ORDER.index("method") < DEFAULTS_ORDER.index("model")
 
 
-def test_every_generated_data_set_has_its_quick_settings():
-    """profile=quick coarsens a generated data set through data_profile/<data>_quick.yaml, an
-    optional overlay: a generated data set without one would run the paper's settings under
-    profile=quick without a word. Data read from files has nothing to coarsen."""
+def test_every_generated_data_set_and_the_recipe_change_under_profile_quick():
+    """profile=quick coarsens each generated data set and shortens the recipe through values that
+    name every profile (``${per_profile:{...}}``): a generated data set without one would run the
+    paper's settings under profile=quick without a word. Data read from files has nothing to coarsen."""
     from mrcert.data.synthetic import FAMILIES
 
     generated = [p.stem for p in (CONF_DIR / "data").glob("*.yaml") if OmegaConf.load(p).get("source") in FAMILIES]
     assert generated, "no generated data set found"
-    assert [d for d in generated if not (CONF_DIR / "data_profile" / f"{d}_quick.yaml").is_file()] == []
+    for data in generated:
+        quick, paper = (plain(compose_cfg([f"data={data}", f"profile={p}"])) for p in ("quick", "paper"))
+        assert quick["data"] != paper["data"] and quick["train"] != paper["train"], data
+        assert quick["profile"]["name"] == "quick" and paper["profile"]["name"] == "paper"
+
+
+@pytest.mark.parametrize("values", [{"quick": 1}, {"paper": 1, "quick": 2, "fast": 3}, 5])
+def test_a_value_that_depends_on_the_profile_names_every_profile(values):
+    from mrcert.infra.config import per_profile
+
+    root = OmegaConf.create({"profile": {"name": "quick"}})
+    with pytest.raises(ConfigError, match="a value for each profile: paper, quick"):
+        per_profile(values, _root_=root)
+    assert per_profile({"paper": 1, "quick": 2}, _root_=root) == 2

@@ -41,6 +41,21 @@ register()  # the structured-config schemas the option files name
 OmegaConf.register_new_resolver("mrcert_uid", run_uid, replace=True)
 OmegaConf.register_new_resolver("mrcert_abspath", lambda p: os.path.abspath(str(p)), replace=True)
 
+PROFILES = tuple(sorted(p.stem for p in (CONF_DIR / "profile").glob("*.yaml")))
+"""The profiles (``conf/profile/``): how much of the paper's protocol a run does."""
+
+
+def per_profile(values: Mapping[str, Any], *, _root_: DictConfig) -> Any:
+    """``${per_profile:{paper: 0.0025, quick: 0.004}}``: the value for the selected profile. A
+    value that depends on the profile names every profile, so that no data set or recipe falls
+    back to another profile's settings (a profile added later is refused until it is given one)."""
+    if not isinstance(values, Mapping) or set(values) != set(PROFILES):
+        raise ConfigError("per_profile", values, f"a value for each profile: {', '.join(PROFILES)}")
+    return values[_root_.profile.name]
+
+
+OmegaConf.register_new_resolver("per_profile", per_profile, replace=True)
+
 
 # --- validation -------------------------------------------------------------------------
 
