@@ -33,7 +33,7 @@ GATHERED = "mrcert.gathered_from"
 
 
 class _StoreRuns:
-    """:class:`mrcert.infra.stages.TrainRuns` over one experiment's runs, by id or by origin."""
+    """:class:`mrcert.infra.stages.RunRecords` over one experiment's runs, by id or by origin."""
 
     def __init__(self, client, runs: list):
         self.client = client
@@ -42,9 +42,6 @@ class _StoreRuns:
 
     def run(self, run_id: str):
         return self.by_id.get(run_id) or self.copies.get(run_id)
-
-    def newest_train_run(self, key: str) -> str | None:  # not needed: runs are found by id
-        return None
 
     def run_tags(self, run_id: str) -> dict[str, str] | None:
         run = self.run(run_id)

@@ -53,17 +53,21 @@ class Model:
     train_run: str | None = None
 
 
-class TrainRuns(Protocol):
-    """What the resolver reads from a store: a train run by key, and a run by id."""
-
-    def newest_train_run(self, key: str) -> str | None:
-        """The newest FINISHED train run with run key ``key``."""
+class RunRecords(Protocol):
+    """What naming a run's model reads from a store: a run by id."""
 
     def run_tags(self, run_id: str) -> dict[str, str] | None:
         """A run's tags (None when the store has no such run)."""
 
     def artifact(self, run_id: str, path: str) -> Path:
         """A run's artifact as a local file (downloaded when the store is remote)."""
+
+
+class TrainRuns(RunRecords, Protocol):
+    """What the resolver reads from a store: a run by id, and a train run by key."""
+
+    def newest_train_run(self, key: str) -> str | None:
+        """The newest FINISHED train run with run key ``key``."""
 
 
 def train_config(cfg: DictConfig) -> dict:
@@ -81,7 +85,7 @@ def train_key(cfg: DictConfig) -> str:
     return identify(train_config(cfg), TASKS["train"].identity).key
 
 
-def model_identity(runs: TrainRuns, run_id: str, path: str = BEST_PATH) -> str:
+def model_identity(runs: RunRecords, run_id: str, path: str = BEST_PATH) -> str:
     """The identity of a run's checkpoint ``path``: its train key (for a train run's model) and
     its content's digest (recorded on the train run, else computed from the file)."""
     tags = runs.run_tags(run_id) or {}

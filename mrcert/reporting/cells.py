@@ -158,7 +158,10 @@ class RunIndex:
     def artifact(self, run_id: str, path: str) -> Path:
         import mlflow
 
-        return Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=path))
+        try:
+            return Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=path))
+        except Exception as exc:  # noqa: BLE001 - a run whose model is gone: its cells stay empty
+            raise MrcertError(f"runs:/{run_id}/{path} cannot be fetched from MLflow: {exc}") from None
 
     def cell(self, overrides: Iterable[str]) -> Cell:
         """The cell of the config ``overrides`` compose to (cached per override list)."""
