@@ -543,15 +543,22 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     run(tmp_path, [*motion, *shared, "task=certify"], "cms")
     run(tmp_path, [*pixelwise, *SETTINGS, "task=train"], "pws-train")
     run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
+    # Motion smoothing on the pixel-noise model: both methods on one base classifier.
+    run(tmp_path, [*motion, *shared, "task=certify", "model.trained_for={name:pixelwise,sigma:0.25}"], "cms-noise")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     src = ExperimentCells(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
     df = side_by_side.runs(src)
-    cms, pws = (read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"]) for name in ("cms", "pws"))
+    cms, noise, pws = (
+        read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"]) for name in ("cms", "cms-noise", "pws")
+    )
     assert len(pws) < len(cms) and set(pws.idx) < set(cms.idx)  # every 10th image
-    assert list(df["frames"].isna()) == [True, False] and (df["half_width"] == 0.001).all()
-    motion, pixel = df.iloc[0], df.iloc[1]
-    same = cms[cms.idx.isin(pws.idx)]
-    assert motion["certified accuracy"] == ((same.correct == 1) & (same.radius >= 0.001) & (same.predict >= 0)).mean()
+    assert list(df["frames"].isna()) == [True, True, False] and (df["half_width"] == 0.001).all()
+    assert list(df["base model"]) == ["motion-augmented model", *["pixel-noise model (sigma 0.25)"] * 2]
+    motion, on_noise, pixel = df.iloc[0], df.iloc[1], df.iloc[2]
+    for row, whole in ((motion, cms), (on_noise, noise)):
+        same = whole[whole.idx.isin(pws.idx)]
+        assert row["certified accuracy"] == ((same.correct == 1) & (same.radius >= 0.001) & (same.predict >= 0)).mean()
+    assert not noise.equals(cms)  # another base classifier
     assert pixel["certified accuracy"] == ((pws.correct == 1) & (pws.radius >= 0.001) & (pws.predict >= 0)).mean()
     assert motion["images"] == pixel["images"] == len(pws)
     assert (motion["poses projected / image"], motion["forward passes / image"]) == (48, 48)
@@ -561,7 +568,7 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     assert (pixel["poses projected / image"], pixel["forward passes / image"]) == (3, 48)
     assert pixel["seconds / image"] == pws.seconds.mean()
     fig = side_by_side.figure(df)
-    assert len(fig.axes[0].lines) == 2  # motion smoothing's curve and pixel-wise smoothing's point
+    assert len(fig.axes[0].lines) == 3  # motion smoothing's curves (two models) and pixel-wise smoothing's point
 
 
 def test_the_page_states_which_test_images_each_tasks_columns_cover():

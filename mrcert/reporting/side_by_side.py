@@ -1,13 +1,15 @@
 """Camera motion smoothing beside pixel-wise smoothing (``experiment=side_by_side``, docs/method.md §8).
 
-One pair of rows per finished pixel-wise certify run of the experiment's sweep (axis, interval
-``[-a, a]``, frames): that run, and the fixed-n CERTIFY run of ``experiment=reproduce_quick`` with
-the motion-augmented model of the same axis and architecture, restricted to the same test
-images. Each row gives the certified accuracy at the motion radius ``a`` (pixel-wise smoothing
-certifies the whole interval or nothing; motion smoothing certifies ``|motion| < R``), the
-camera poses projected and the base classifier's forward passes per image, and seconds per image.
-The figure draws motion smoothing's certified accuracy against radius on those images and
-pixel-wise smoothing's certified accuracy at each interval.
+Rows per finished pixel-wise certify run of the experiment's sweep (axis, interval ``[-a, a]``,
+frames), all restricted to that run's test images: the fixed-n CERTIFY run of
+``experiment=reproduce_quick`` on the same axis and architecture, by camera motion smoothing,
+once with its own motion-augmented model and once with the pixel-wise run's pixel-noise model
+(``model.trained_for``: both methods on one base classifier, as the PwS authors compared them);
+then the pixel-wise run. Each row gives the certified accuracy at the motion radius ``a``
+(pixel-wise smoothing certifies the whole interval or nothing; motion smoothing certifies
+``|motion| < R``), the camera poses projected and the base classifier's forward passes per
+image, and seconds per image. The figure draws motion smoothing's certified accuracy against
+radius on those images and pixel-wise smoothing's certified accuracy at each interval.
 """
 
 from __future__ import annotations
@@ -39,8 +41,9 @@ def _costs(log: pd.DataFrame, n: int) -> dict[str, float]:
 
 
 def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
-    """Two rows (motion smoothing, then pixel-wise smoothing) per finished pixel-wise run of the
-    experiment, on the pixel-wise run's images; empty when none has run."""
+    """Per finished pixel-wise run of the experiment, on its images: motion smoothing on the
+    motion-augmented model and on the pixel-noise model (each where its run has finished), then
+    pixel-wise smoothing; empty when no pixel-wise run has finished."""
     rows = []
     head = (f"profile={src.profile}", "task=certify")
     of_motion = tuple(o for o in src.overrides if not o.startswith("method."))  # method.*: pixel-wise's own
@@ -55,16 +58,6 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
             float(cfg.method.certify.half_width),
             int(cfg.method.certify.frames),
         )
-        motion = src.index.cell(
-            (
-                f"experiment={MOTION_EXPERIMENT}",
-                *head,
-                *of_motion,
-                f"motion={axis}",
-                f"model.variant={cfg.model.variant}",
-            )
-        )
-        motion_log = src.index.log(motion)
         images = set(log["idx"])
         common = {
             "axis": axis,
@@ -74,12 +67,31 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
             "images": len(images),
             "skip": int(cfg.task.skip),
         }
-        if motion_log is not None:
+        noise = f"pixel-noise model (sigma {float(cfg.method.sigma):g})"
+        own = (
+            ("motion-augmented model", ()),
+            (noise, (f"model.trained_for={{name:pixelwise,sigma:{cfg.method.sigma}}}",)),
+        )
+        for trained, extra in own:
+            motion = src.index.cell(
+                (
+                    f"experiment={MOTION_EXPERIMENT}",
+                    *head,
+                    *of_motion,
+                    f"motion={axis}",
+                    f"model.variant={cfg.model.variant}",
+                    *extra,
+                )
+            )
+            motion_log = src.index.log(motion)
+            if motion_log is None:
+                continue
             same = motion_log[motion_log["idx"].isin(images)]
             rows.append(
                 common
                 | {
                     "method": f"motion smoothing (sigma {float(motion.cfg.motion.sigma):g} {unit(axis)})",
+                    "base model": trained,
                     "frames": np.nan,
                     "certified accuracy": certify_log.certified_accuracy(same, half_width),
                     **_costs(same, int(motion.cfg.task.n)),
@@ -91,6 +103,7 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
             common
             | {
                 "method": f"pixel-wise smoothing (sigma {float(cfg.method.sigma):g})",
+                "base model": noise,
                 "frames": frames,
                 "certified accuracy": certify_log.certified_accuracy(log, half_width),
                 **_costs(log, int(cfg.task.n)),
@@ -109,6 +122,7 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
             "interval",
             "method",
             "model",
+            "base model",
             "frames",
             "images",
             "certified accuracy",
@@ -138,10 +152,11 @@ def figure(df: pd.DataFrame):
     for ax, axis in zip(grid.ravel(), axes, strict=True):
         rows = df[df["axis"] == axis]
         smallest = float(rows["half_width"].min())
-        for _, row in rows[rows["frames"].isna()].drop_duplicates("images").iterrows():
+        for _, row in rows[rows["frames"].isna()].drop_duplicates("base model").iterrows():
             radii, acc = certify_log.curve(row["log"])
             radii = np.maximum(radii, smallest / 10)  # log scale: radius 0 drawn at the left edge
-            ax.step(np.append(radii, radii[-1] * 1.05), np.append(acc, 0.0), where="pre", label=row["method"])
+            label = f"{row['method']}, {row['base model']}"
+            ax.step(np.append(radii, radii[-1] * 1.05), np.append(acc, 0.0), where="pre", label=label)
         for method, group in rows[rows["frames"].notna()].groupby("method"):
             ax.plot(group["half_width"], group["certified accuracy"], "o", label=f"{method}, whole interval")
             for _, row in group.iterrows():
