@@ -188,3 +188,33 @@ def find_runs(tracking: DictConfig, key: str, finished: bool, task: str | None =
         output_format="list",
     )
     return runs if finished else [r for r in runs if r.info.status in ("RUNNING", "KILLED")]
+
+
+def all_runs(client, experiment_id: str, where: str = "") -> list:
+    """Every run of the experiment matching ``where``, page by page."""
+    runs, token = [], None
+    while True:
+        page = client.search_runs([experiment_id], where, max_results=1000, page_token=token)
+        runs += list(page)
+        token = page.token
+        if not token:
+            return runs
+
+
+def artifact(client, run_id: str, path: str) -> Path:
+    """A run's artifact as a local file (downloaded when the store is remote), or a one-line error."""
+    try:
+        return Path(client.download_artifacts(run_id, path))
+    except Exception as exc:  # noqa: BLE001 - a missing artifact, an unreachable store
+        raise MrcertError(f"runs:/{run_id}/{path} cannot be fetched from MLflow: {exc}") from None
+
+
+def run_file(client, run_id: str, output_dir: str | None, name: str) -> Path | None:
+    """A file of a run: from its output folder, else from its artifacts (None when it is gone)."""
+    local = Path(str(output_dir or "")) / name
+    if output_dir and local.is_file():
+        return local
+    try:
+        return artifact(client, run_id, name)
+    except MrcertError:
+        return None

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from mrcert.infra.experiment import all_runs, artifact, run_file
 from mrcert.infra.identity import KEY_SCHEME, identify
 from mrcert.infra.log_keys import rekey
 from mrcert.infra.tasks import TASKS
@@ -48,18 +49,15 @@ class _StoreRuns:
         return None if run is None else dict(run.data.tags)
 
     def artifact(self, run_id: str, path: str) -> Path:
-        run = self.run(run_id)
-        return Path(self.client.download_artifacts(run.info.run_id, path))
+        return artifact(self.client, self.run(run_id).info.run_id, path)
 
 
 def _config(client, run) -> DictConfig | None:
-    """A run's ``resolved_config.yaml``: from its output folder, else its artifacts (None if gone)."""
-    local = Path(run.data.tags.get("mrcert.output_dir", "")) / "resolved_config.yaml"
+    """A run's ``resolved_config.yaml`` (None when it is gone or unreadable)."""
+    path = run_file(client, run.info.run_id, run.data.tags.get("mrcert.output_dir"), "resolved_config.yaml")
     try:
-        if not local.is_file():
-            local = Path(client.download_artifacts(run.info.run_id, "resolved_config.yaml"))
-        return OmegaConf.load(local)
-    except Exception:  # noqa: BLE001 - a run whose config is gone or unreadable
+        return None if path is None else OmegaConf.load(path)
+    except Exception:  # noqa: BLE001 - a config this version cannot read
         return None
 
 
@@ -68,7 +66,7 @@ def migrate(client, experiment_id: str) -> dict[str, int]:
     ``migrated`` runs and of runs that ``kept`` their keys."""
     from mrcert.infra.stages import Model, model_identity, run_of
 
-    runs = _all_runs(client, experiment_id)
+    runs = all_runs(client, experiment_id)
     store = _StoreRuns(client, runs)
     counts = {"migrated": 0, "kept": 0}
     for run in runs:
@@ -97,16 +95,6 @@ def migrate(client, experiment_id: str) -> dict[str, int]:
     if counts["migrated"] or counts["kept"]:
         log.info("content keys: %d runs re-keyed, %d kept their keys", counts["migrated"], counts["kept"])
     return counts
-
-
-def _all_runs(client, experiment_id: str) -> list:
-    runs, token = [], None
-    while True:
-        page = client.search_runs([experiment_id], "", max_results=1000, page_token=token)
-        runs += list(page)
-        token = page.token
-        if not token:
-            return runs
 
 
 def migrate_once(client, experiment: str) -> None:

@@ -31,10 +31,15 @@ def read_owner(path: Path) -> dict | None:
         return None
 
 
-def write_owner(path: Path, owner: dict) -> None:
+def replace_text(path: Path, text: str) -> None:
+    """Write ``path`` whole or not at all: a crash never leaves it half written."""
     tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(owner, sort_keys=True) + "\n")
+    tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def write_owner(path: Path, owner: dict) -> None:
+    replace_text(path, json.dumps(owner, sort_keys=True) + "\n")
 
 
 def rekey(log: Path, run_id: str, old: str, new: str) -> bool:
@@ -50,8 +55,6 @@ def rekey(log: Path, run_id: str, old: str, new: str) -> bool:
         body, _, check = line.rpartition("\t")
         if body and check == check_value(old, body):
             lines[i] = f"{body}\t{check_value(new, body)}"
-    tmp = log.with_name(log.name + f".tmp-{os.getpid()}")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, log)
+    replace_text(log, "\n".join(lines))
     write_owner(owner_path(log), {"run_key": new, "run_id": run_id})
     return True

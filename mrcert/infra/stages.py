@@ -182,8 +182,7 @@ class LiveRuns:
         from mrcert.infra.experiment import configure
 
         self.tracking = tracking
-        self.mlflow = configure(tracking)
-        self.client = self.mlflow.MlflowClient()
+        self.client = configure(tracking).MlflowClient()
 
     def newest_train_run(self, key: str) -> str | None:
         from mrcert.infra.experiment import find_runs
@@ -198,7 +197,6 @@ class LiveRuns:
             return None
 
     def artifact(self, run_id: str, path: str) -> Path:
-        try:
-            return Path(self.mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=path))
-        except Exception as exc:  # missing artifact, unreachable store
-            raise MrcertError(f"runs:/{run_id}/{path} cannot be fetched from MLflow: {exc}") from None
+        from mrcert.infra.experiment import artifact
+
+        return artifact(self.client, run_id, path)

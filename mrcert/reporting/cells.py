@@ -27,6 +27,7 @@ from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
 from mrcert.infra.config import CONF_DIR
+from mrcert.infra.experiment import artifact, run_file
 from mrcert.infra.schema import SCHEMAS
 from mrcert.infra.stages import resolve
 from mrcert.infra.tasks import TASKS
@@ -158,10 +159,7 @@ class RunIndex:
     def artifact(self, run_id: str, path: str) -> Path:
         import mlflow
 
-        try:
-            return Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=path))
-        except Exception as exc:  # noqa: BLE001 - a run whose model is gone: its cells stay empty
-            raise MrcertError(f"runs:/{run_id}/{path} cannot be fetched from MLflow: {exc}") from None
+        return artifact(mlflow.MlflowClient(), run_id, path)  # gone: the cell stays empty with a note
 
     def cell(self, overrides: Iterable[str]) -> Cell:
         """The cell of the config ``overrides`` compose to (cached per override list)."""
@@ -221,15 +219,10 @@ def _run_config(run: pd.Series) -> DictConfig:
 
 def _run_file(run: pd.Series, name: str) -> Path | None:
     """A file of a run: from its output folder, else downloaded from its artifacts (None if gone)."""
-    local = Path(str(run.get("tags.mrcert.output_dir", ""))) / name
-    if local.is_file():
-        return local
     import mlflow
 
-    try:
-        return Path(mlflow.artifacts.download_artifacts(run_id=str(run["run_id"]), artifact_path=name))
-    except Exception:  # noqa: BLE001 - a run whose file is gone
-        return None
+    folder = run.get("tags.mrcert.output_dir")
+    return run_file(mlflow.MlflowClient(), str(run["run_id"]), folder if isinstance(folder, str) else None, name)
 
 
 def _run_log(run: pd.Series, name: str) -> pd.DataFrame | None:

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from mrcert.errors import MrcertError
-from mrcert.infra.log_keys import CHECK, check_value, owner_path, read_owner, write_owner
+from mrcert.infra.log_keys import CHECK, check_value, owner_path, read_owner, replace_text, write_owner
 from mrcert.infra.tasks import CERTIFY_COLUMNS, TASKS
 
 log = logging.getLogger(__name__)
@@ -134,9 +134,7 @@ class ResultLog:
                     rejected[0].split("\t", 1)[0],
                     aside,
                 )
-            tmp = self.path.with_name(self.path.name + f".tmp-{os.getpid()}")
-            tmp.write_text("\n".join(rewritten) + "\n")
-            os.replace(tmp, self.path)
+            replace_text(self.path, "\n".join(rewritten) + "\n")
         return seen
 
     def _reason(self, cells: list[str], header: list[str], expected: Mapping[int, int] | None, seen: set[int]) -> str:

@@ -29,7 +29,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
-from mrcert.infra.experiment import ensure_experiment
+from mrcert.infra.experiment import all_runs, ensure_experiment
 from mrcert.infra.key_migration import GATHERED, migrate
 from mrcert.infra.tracking import RunContext
 
@@ -50,21 +50,10 @@ def other_store(value: str) -> tuple[str, Path | None]:
     return f"sqlite:///{db.resolve()}", db.resolve().parent
 
 
-def _runs(client, experiment_id: str, where: str = "") -> list:
-    """Every run of the experiment matching ``where``, page by page."""
-    runs, token = [], None
-    while True:
-        page = client.search_runs([experiment_id], where, max_results=1000, page_token=token)
-        runs += list(page)
-        token = page.token
-        if not token:
-            return runs
-
-
 def _finished_runs(client, experiment_id: str) -> list:
     """Every FINISHED run: sweep parents first (their children link to their copies), then the
     rest, each group by start time."""
-    runs = _runs(client, experiment_id, "attributes.status = 'FINISHED'")
+    runs = all_runs(client, experiment_id, "attributes.status = 'FINISHED'")
 
     def order(r) -> tuple[int, int]:
         return (0 if r.data.tags.get("mrcert.multirun") == "parent" else 1), r.info.start_time
@@ -142,7 +131,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     exp = src.get_experiment_by_name(cfg.tracking.experiment)
     if exp is None:
         raise MrcertError(f"task.store={cfg.task.store!r} holds no experiment {cfg.tracking.experiment!r}")
-    here = {r.info.run_id: r for r in _runs(dst, experiment_id)}
+    here = {r.info.run_id: r for r in all_runs(dst, experiment_id)}
     ids: dict[str, str] = {}
     for r in here.values():
         origin = r.data.tags.get(GATHERED)
