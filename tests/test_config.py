@@ -26,10 +26,6 @@ def compose_cfg(overrides: list[str]):
         return compose("config", overrides=overrides, return_hydra_config=True)
 
 
-# An overlay group is selected by what it overlays (``${task}_${experiment}``).
-OVERLAYS = {
-    "task_experiment": lambda o: [f"task={o.split('_', 1)[0]}", f"experiment={o.split('_', 1)[1]}"],
-}
 REQUIRED = {
     ("data", "pointcloud"): ["data.path=scan.ply"],
     ("data", "custom"): ["data.path=scan.ply", "data.poses=poses.json"],
@@ -50,8 +46,7 @@ def option_file(group: str, option: str) -> tuple[str, dict]:
 
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
 def test_every_option_composes_to_its_own_values_and_validates(group, option):
-    selection = OVERLAYS[group](option) if group in OVERLAYS else [f"{group}={option}"]
-    cfg = compose_cfg([*selection, *REQUIRED.get((group, option), [])])
+    cfg = compose_cfg([f"{group}={option}", *REQUIRED.get((group, option), [])])
     assert cfg.hydra.runtime.choices[group] == option
     package, values = option_file(group, option)
     node = cfg if package == "_global_" else OmegaConf.select(cfg, package)
@@ -80,7 +75,7 @@ def later_overrides(cfg, group: str, package: str) -> set[str]:
     keys: set[str] = set()
     for later in order[order.index(group) + 1 :] if group in order else []:
         choice = cfg.hydra.runtime.choices.get(later)
-        if not choice or not (CONF_DIR / later / f"{choice}.yaml").is_file():  # an optional overlay that is absent
+        if not choice or not (CONF_DIR / later / f"{choice}.yaml").is_file():  # an optional group left out
             continue
         later_package, values = option_file(later, choice)
         for k in flatten(values):
@@ -297,8 +292,8 @@ def test_table_links_follow_the_ui_port(monkeypatch):
 
 
 def test_the_defaults_order_is_read_from_the_root_config():
-    """The order the overlay check relies on is the root config's, method and hydra included."""
-    assert DEFAULTS_ORDER[:4] == ["task", "data", "profile", "train"] and DEFAULTS_ORDER[-1] == "task_experiment"
+    """The order the check of later overrides relies on is the root config's, method and hydra included."""
+    assert DEFAULTS_ORDER[:4] == ["task", "data", "profile", "train"] and DEFAULTS_ORDER[-1] == "experiment"
     assert DEFAULTS_ORDER.index("motion") < DEFAULTS_ORDER.index("method") < DEFAULTS_ORDER.index("model")
 
 
@@ -324,3 +319,74 @@ def test_a_value_that_depends_on_the_profile_names_every_profile(values):
     with pytest.raises(ConfigError, match="a value for each profile: paper, quick"):
         per_profile(values, _root_=root)
     assert per_profile({"paper": 1, "quick": 2}, _root_=root) == 2
+
+
+def test_no_config_is_chosen_by_a_name_made_of_other_choices():
+    """An experiment says what it changes in its own file: no defaults entry of the root config
+    interpolates other choices into a file name (an overlay that, when missing, silently falls
+    back to the defaults)."""
+    entries = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "config.yaml").defaults)
+    assert not [e for e in entries if "${" in str(e)]
+
+
+EVALUATIONS = ("certify", "smooth", "attack")
+
+
+@pytest.mark.parametrize("experiment", options("experiment"))
+def test_an_experiment_s_per_task_settings_reach_that_task_alone(experiment):
+    """Every per-task setting an experiment gives (demo's every 12th image, the tabletop's vote over
+    10 samples, the reproduction's every 2nd attacked image) is the composed value of that task,
+    under every profile; the other evaluation tasks keep their own defaults; the command line wins."""
+    for profile in options("profile"):
+        settings = plain(compose_cfg([f"experiment={experiment}", f"profile={profile}"]))["per_task"]
+        defaults = {t: plain(compose_cfg([f"task={t}", f"profile={profile}"]))["task"] for t in EVALUATIONS}
+        for task in EVALUATIONS:
+            composed = plain(compose_cfg([f"experiment={experiment}", f"profile={profile}", f"task={task}"]))["task"]
+            wanted = defaults[task] | settings.get(task, {})
+            assert {k: composed[k] for k in wanted} == wanted, (experiment, profile, task)
+        for task, values in settings.items():
+            given = {k: "vote" if k == "decision" else 3 for k in values}
+            composed = plain(
+                compose_cfg([f"experiment={experiment}", f"task={task}", *(f"task.{k}={v}" for k, v in given.items())])
+            )
+            assert {k: composed["task"][k] for k in given} == given, (experiment, task)
+
+
+def test_the_shipped_experiments_give_the_settings_their_tables_rest_on():
+    """The values the evidence page's cells were computed with (their run keys hold them)."""
+    task = {
+        (e, t): plain(compose_cfg([f"experiment={e}", f"task={t}"]))["task"]
+        for e, t in [
+            ("demo", "certify"),
+            ("demo", "attack"),
+            ("reproduce_quick", "attack"),
+            ("reproduce_quick", "certify"),
+            ("tabletop", "smooth"),
+            ("side_by_side", "certify"),
+        ]
+    }
+    assert task["demo", "certify"]["skip"] == task["demo", "attack"]["skip"] == 12
+    assert (task["reproduce_quick", "attack"]["skip"], task["reproduce_quick", "certify"]["skip"]) == (2, 1)
+    assert (
+        task["reproduce_quick", "certify"]["n"],
+        task["tabletop", "smooth"]["n"],
+        task["tabletop", "smooth"]["decision"],
+    ) == (1000, 10, "vote")
+    assert task["side_by_side", "certify"]["skip"] == 10
+
+
+@pytest.mark.parametrize(
+    "override,key,allowed",
+    [
+        ("+per_task.atack.skip=2", "per_task.atack", "settings of one of the tasks certify, smooth, attack"),
+        ("+per_task.train.skip=2", "per_task.train", "settings of one of the tasks certify, smooth, attack"),
+        ("+per_task.attack.alpha=0.05", "per_task.attack.alpha", "one of the per-task settings n, decision, skip"),
+        ("+per_task.attack=2", "per_task.attack", "a mapping of some of n, decision, skip"),
+    ],
+)
+def test_a_per_task_setting_no_task_reads_is_refused_whatever_the_task(override, key, allowed):
+    """A mistyped task or key under ``per_task`` would otherwise be silently ignored: refused by
+    validation, naming it, even when the task run is another one."""
+    with pytest.raises(ConfigError) as err:
+        validate(compose_cfg(["task=train", override]))
+    assert (err.value.key, err.value.allowed) == (key, allowed)

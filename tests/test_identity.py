@@ -61,8 +61,9 @@ def test_every_key_of_every_shipped_config_is_classified(task, data):
     assert unclassified == []
 
 
-RUNS_ANYWHERE = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent")
-"""Where outputs go, how runs are tracked and scheduled, a bound only validation reads."""
+RUNS_ANYWHERE = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent", "per_task")
+"""Where outputs go, how runs are tracked and scheduled, a bound only validation reads, and an
+experiment's settings of single tasks (what they set is in the task's own keys)."""
 HOW_IT_EVALUATES = ("task.batch_size", "task.backend", "task.resume", "task.crop_sigmas")
 """How an evaluation computes, never what: batches, the projection's back end, resuming, the exact crop."""
 

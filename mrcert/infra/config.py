@@ -21,7 +21,7 @@ from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 from mrcert.core.geometry import AXES, is_translation
 from mrcert.errors import ConfigError
 from mrcert.infra.runtime import AUTO_BATCH
-from mrcert.infra.schema import register
+from mrcert.infra.schema import SCHEMAS, register
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 _FALLBACK_UID = secrets.token_hex(3)
@@ -55,6 +55,19 @@ def per_profile(values: Mapping[str, Any], *, _root_: DictConfig) -> Any:
 
 
 OmegaConf.register_new_resolver("per_profile", per_profile, replace=True)
+
+PER_TASK_KEYS = ("n", "decision", "skip")
+"""What an experiment may set for one task only, under ``per_task.<task>`` (``per_task: {attack:
+{skip: 2}}``): the evaluation tasks' files read these keys through ``${task_setting:KEY,DEFAULT}``,
+so a value given on the command line (``task.skip=1``) still wins."""
+
+
+def task_setting(key: str, default: Any, *, _root_: DictConfig) -> Any:
+    """``${task_setting:skip,1}``: the experiment's ``per_task.<this task>.<key>``, else ``default``."""
+    return OmegaConf.select(_root_, f"per_task.{_root_.task.name}.{key}", default=default)
+
+
+OmegaConf.register_new_resolver("task_setting", task_setting, replace=True)
 
 
 # --- validation -------------------------------------------------------------------------
@@ -213,6 +226,7 @@ TOP_LEVEL = (
     "seed",
     "device",
     "skip_finished",
+    "per_task",
 )
 """The root config's keys (conf/config.yaml and its groups); anything else at the top, such as
 a mistyped ``+seeed=1``, is refused instead of silently making a separate result."""
@@ -343,6 +357,7 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")
     motion = data.get("motion", {})
     _motion_scale(motion, data.get("data", {}))
+    _per_task(data.get("per_task"))
     _method(cfg, data)
     _trained_for(data)
     if "model" in data:
@@ -350,6 +365,29 @@ def validate(cfg: DictConfig) -> None:
 
         check_net(data["model"].get("net"))
     _device(data.get("device", "auto"))
+
+
+def _per_task(settings: Any) -> None:
+    """``per_task``: for tasks that read them (their schema has every key of :data:`PER_TASK_KEYS`),
+    a mapping of some of those keys; checked whatever the task run, so that a mistyped name in
+    an experiment is refused before it could be silently ignored."""
+    if settings is None:
+        return
+    readers = [
+        n for n, schema in SCHEMAS["task"].items() if set(PER_TASK_KEYS) <= {f.name for f in dataclasses.fields(schema)}
+    ]
+    if not isinstance(settings, dict):
+        raise ConfigError("per_task", settings, f"a mapping from task names ({', '.join(readers)}) to their settings")
+    for task, values in settings.items():
+        if task not in readers:
+            raise ConfigError(f"per_task.{task}", values, f"settings of one of the tasks {', '.join(readers)}")
+        if not isinstance(values, dict):
+            raise ConfigError(f"per_task.{task}", values, f"a mapping of some of {', '.join(PER_TASK_KEYS)}")
+        for key, value in values.items():
+            if key not in PER_TASK_KEYS:
+                raise ConfigError(
+                    f"per_task.{task}.{key}", value, f"one of the per-task settings {', '.join(PER_TASK_KEYS)}"
+                )
 
 
 def _device(device: Any) -> None:

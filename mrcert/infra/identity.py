@@ -37,9 +37,10 @@ from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.core.methods import unkeyed
 from mrcert.infra.config import plain
 
-COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent")
-"""Where outputs go and how runs are tracked or scheduled, and bounds that only validation
-reads (``data.extent``): never part of a result."""
+COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent", "per_task")
+"""Where outputs go and how runs are tracked or scheduled, bounds that only validation reads
+(``data.extent``), and an experiment's settings of single tasks (``per_task``: the task's own
+keys, which are part of its result, hold them): never part of a result."""
 
 KEY_SCHEME = ("mrcert.key_scheme", "content")
 """Tag of a run whose keys name its model by content (:mod:`mrcert.infra.stages`); a run without
