@@ -54,7 +54,7 @@ def run(args, arch: str) -> None:
     from hydra import compose, initialize_config_dir
 
     from mrcert.core.models import build_model, for_inference
-    from mrcert.core.smoothing import MotionSmoothing, SmoothedClassifier, image_generator
+    from mrcert.core.smoothing import CameraMotionSmoothing, SmoothedClassifier, image_generator
     from mrcert.data.sources import load
     from mrcert.infra.config import CONF_DIR
     from mrcert.infra.runtime import batch_size, render_batch
@@ -75,7 +75,7 @@ def run(args, arch: str) -> None:
             ],
         )
     bundle = load(cfg.data)
-    dist = MotionSmoothing.from_config(None, cfg.motion)
+    dist = CameraMotionSmoothing.from_config(None, cfg.motion)
     samples = bundle.samples(crop=dist.crop_bound(6.0))
     sample = samples[0]
     device = torch.device(args.device)

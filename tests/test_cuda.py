@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from mrcert.core.projection import locality_order, project
-from mrcert.core.smoothing import MotionSmoothing, SmoothedClassifier, image_generator
+from mrcert.core.smoothing import CameraMotionSmoothing, SmoothedClassifier, image_generator
 from tests.conftest import PAPER_K, random_cloud, random_motions
 
 pytestmark = [
@@ -53,7 +53,7 @@ def test_certify_on_cuda_gives_the_cpu_rows_up_to_model_rounding():
 
     rng = np.random.default_rng(3)
     pts, cols = random_cloud(rng, n=50_000)
-    dist = MotionSmoothing(("tz",), (0.1,))
+    dist = CameraMotionSmoothing(("tz",), (0.1,))
     rows = {}
     for device in ("cpu", "cuda"):
         sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
@@ -72,7 +72,7 @@ def test_overlapped_rendering_on_cuda_gives_the_same_votes(renders_on):
 
     rng = np.random.default_rng(4)
     pts, cols = random_cloud(rng, n=50_000)
-    dist = MotionSmoothing(("rz",), (0.122173,))
+    dist = CameraMotionSmoothing(("rz",), (0.122173,))
     sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
     sample = sample.to(renders_on)
     model = _classifier().cuda()
@@ -92,7 +92,7 @@ def test_a_sample_rendered_on_the_gpu_gets_the_votes_of_its_cpu_renders():
 
     rng = np.random.default_rng(5)
     pts, cols = random_cloud(rng, n=50_000)
-    dist = MotionSmoothing(("ry",), (0.0436,))
+    dist = CameraMotionSmoothing(("ry",), (0.0436,))
     sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
     smoothed = SmoothedClassifier(_classifier().cuda(), dist, 5, 200, "cuda", overlap=True)
     votes = [smoothed.sample_counts(s.renderer(), 1000, image_generator(0, 9)) for s in (sample, sample.to("cuda"))]
@@ -106,7 +106,7 @@ def test_a_sample_moved_to_the_gpu_renders_motions_beyond_its_crop_exactly():
 
     rng = np.random.default_rng(6)
     pts, cols = random_cloud(rng, n=50_000)
-    dist = MotionSmoothing(("tz",), (0.1,))
+    dist = CameraMotionSmoothing(("tz",), (0.1,))
     sample = TestSample.build(pts.numpy(), cols.numpy(), PAPER_K, 90, 160, label=0, bound=dist.crop_bound(6.0))
     motions = torch.zeros(6, 6, dtype=torch.float64)
     motions[:, 2] = torch.tensor([0.0, 0.3, -0.5, 0.9, -1.2, 2.0])  # the bound is 0.6

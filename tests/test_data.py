@@ -16,7 +16,7 @@ from mrcert.core.crop import CropBound
 from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.core.geometry import matrix_to_motion
 from mrcert.core.projection import camera_points
-from mrcert.core.smoothing import MotionSmoothing
+from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.data.datasets import render_poses
 from mrcert.data.protocols import look_at_poses
 from mrcert.data.sources import load
@@ -177,7 +177,7 @@ def test_cache_hits_on_same_config_and_misses_on_change(tmp_path):
     assert changed.cache_info["train"]["hit"] is False
     assert changed.cache_info["train"]["folder"] != first.cache_info["train"]["folder"]
     aug = load(data)
-    augmented = aug.train(MotionSmoothing(("rz",), (0.122173,)))
+    augmented = aug.train(CameraMotionSmoothing(("rz",), (0.122173,)))
     assert aug.cache_info["train-rz-aug"]["hit"] is False and not np.array_equal(np.array(augmented.images), images)
 
 

@@ -75,7 +75,7 @@ def defines_the_result(task: str, cfg: dict, key: str) -> bool:
     def under(*prefixes: str) -> bool:
         return any(key == p or key.startswith(p + ".") for p in prefixes)
 
-    if under(*RUNS_ANYWHERE) or (cfg["method"]["name"] == "motion" and under("method") and key != "method.name"):
+    if under(*RUNS_ANYWHERE) or (cfg["method"]["name"] == "camera_motion" and under("method") and key != "method.name"):
         return False  # camera motion smoothing's parameters are all in motion.* (its name says which method)
     if task in ("import", "gather"):
         return under("task")
@@ -99,7 +99,7 @@ def defines_the_result(task: str, cfg: dict, key: str) -> bool:
     return not (task == "certify" and key == "task.look" and not cfg["task"]["sequential"])
 
 
-@pytest.mark.parametrize("method", ["motion", "pixelwise"])
+@pytest.mark.parametrize("method", ["camera_motion", "pixelwise"])
 @pytest.mark.parametrize("variant", ["vanilla", "augmented"])
 @pytest.mark.parametrize("task", list(TASKS))
 def test_the_run_key_changes_with_every_defining_key_and_no_other(task, variant, method):

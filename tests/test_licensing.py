@@ -12,7 +12,7 @@ import torch
 from scipy.stats import norm
 
 from mrcert.core.geometry import axis_index, compose
-from mrcert.core.smoothing import MotionSmoothing
+from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.config import validate
 from tests.conftest import compose_cfg
@@ -57,7 +57,7 @@ READS_TY_EXACTLY = lambda m: (m[:, 1].abs() > 1e-3).long()  # noqa: E731
 )
 @pytest.mark.parametrize("h", [READS_TY, READS_TX])
 def test_a_licensed_combination_keeps_the_theorem_1_bound_at_moved_cameras(axes, sigmas, h):
-    MotionSmoothing(axes, sigmas)  # accepted
+    CameraMotionSmoothing(axes, sigmas)  # accepted
     eps = noise(axes, sigmas)
     p0 = p_top(h, motion(), eps)
     assert 0.6 < p0 < 0.9
@@ -72,7 +72,7 @@ def test_a_licensed_combination_keeps_the_theorem_1_bound_at_moved_cameras(axes,
 def test_the_refused_counterexample_breaks_the_certificate_it_would_issue():
     axes, sigmas = ("tx", "rz"), (0.05, 0.122173)
     with pytest.raises(MrcertError, match="tx and ty must both be smoothed with equal sigma, or neither"):
-        MotionSmoothing(axes, sigmas)
+        CameraMotionSmoothing(axes, sigmas)
     eps = noise(axes, sigmas, n=100_000)
     assert p_top(READS_TY_EXACTLY, motion(), eps) == 1.0  # CERTIFY would give nA = n: radius 2.605
     alpha = motion(rz=0.122173)  # |alpha|_sigma = 1, well inside that radius
@@ -99,10 +99,10 @@ def test_the_refused_counterexample_breaks_the_certificate_it_would_issue():
 )
 def test_the_licensing_rule(axes, sigmas, allowed):
     if allowed:
-        MotionSmoothing(axes, sigmas)
+        CameraMotionSmoothing(axes, sigmas)
     else:
         with pytest.raises(MrcertError, match="not licensed by Theorem 1"):
-            MotionSmoothing(axes, sigmas)
+            CameraMotionSmoothing(axes, sigmas)
 
 
 def test_a_refused_motion_config_stops_before_any_work():
@@ -131,7 +131,7 @@ def test_a_smoothed_prediction_at_a_moved_camera_draws_the_composition_not_the_s
         (("tx", "ty", "tz", "rz"), (0.05, 0.05, 0.1, 0.122173), motion(tx=0.03, rz=0.2)),
         (("rz",), (0.122173,), motion(rz=0.2)),
     ]:
-        dist = MotionSmoothing(axes, sigmas)
+        dist = CameraMotionSmoothing(axes, sigmas)
         seen.clear()
         SmoothedClassifier(Zero(), dist, 2, batch_size=1000).sample_counts(render, 500, image_generator(0, 1), alpha)
         eps = dist.sample(500, image_generator(0, 1))

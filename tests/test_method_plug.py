@@ -18,12 +18,10 @@ from mrcert.infra.schema import SCHEMAS
 from mrcert.infra.tasks import TASKS
 from tests.conftest import ROOT, compose_cfg
 
-GROUPS = set(SCHEMAS)  # "motion" is a config group as well as a method's name
-
 
 def _naming(source: str) -> list[str]:
     """Where ``source`` names a registered method: a comparison with a method's name, a method's
-    name that is no config group's, or a method's class."""
+    name, or a method's class (no method shares its name with a config group)."""
     names = set(methods.METHODS)
     classes = {m.target.split(":")[1] for m in methods.METHODS.values()}
     found = []
@@ -35,7 +33,7 @@ def _naming(source: str) -> list[str]:
                 if isinstance(o, ast.Constant) and o.value in names
             ]
         elif isinstance(node, ast.Constant) and isinstance(node.value, str):
-            if node.value in names - GROUPS or any(c in node.value for c in classes):
+            if node.value in names or any(c in node.value for c in classes):
                 found.append(f"line {node.lineno}: the string {node.value!r}")
         elif isinstance(node, ast.Name) and node.id in classes:
             found.append(f"line {node.lineno}: {node.id}")
@@ -44,10 +42,16 @@ def _naming(source: str) -> list[str]:
     return found
 
 
+def test_no_method_is_named_like_a_config_group():
+    """``method=motion`` read as a motion; a method's name says which method it is."""
+    groups = {p.name for p in CONF_DIR.iterdir() if p.is_dir()}
+    assert not set(methods.METHODS) & groups
+
+
 def test_the_check_finds_a_method_named_in_each_way():
-    assert _naming('if cfg.method.name == "motion":\n    pass')
-    assert _naming('RULE = ("method.name", "pixelwise", "motion")')
-    assert _naming("from mrcert.core.smoothing import MotionSmoothing")
+    assert _naming('if cfg.method.name == "camera_motion":\n    pass')
+    assert _naming('RULE = ("method.name", "camera_motion")')
+    assert _naming("from mrcert.core.smoothing import CameraMotionSmoothing")
     assert not _naming('if "motion" in ignored:\n    words.remove(str(cfg.method.name))')
 
 
@@ -98,7 +102,7 @@ def test_what_a_method_leaves_out_of_run_keys_is_its_registry_line_alone(monkeyp
     assert _key("certify", *pixel, "motion=tz") != _key("certify", *pixel, "motion=rx")
     # Motion smoothing's group adds nothing to any key (runs made before methods keep theirs).
     for task in ("train", "certify", "smooth", "attack", "render"):
-        assert not [k for k in _identity(task, "method=motion").values if k.startswith("method")]
+        assert not [k for k in _identity(task, "method=camera_motion").values if k.startswith("method")]
         assert [k for k in _identity(task, *pixel).values if k.startswith("method")]
     line = methods.METHODS["pixelwise"]
     monkeypatch.setitem(methods.METHODS, "pixelwise", dataclasses.replace(line, unkeyed_model=()))

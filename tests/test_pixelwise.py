@@ -206,7 +206,7 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     motion = [*TINY, *RECIPE, "task=certify", "model.variant=augmented", noise, "task.n0=8", "task.n=40", "task.max=2"]
     run_task(compose_cfg(motion, tmp_path), tmp_path / "m")
     runs = mlflow.search_runs(search_all_experiments=True, filter_string="attributes.status = 'FINISHED'")
-    (same_model,) = runs[(runs["tags.mrcert.task"] == "certify") & (runs["params.method.name"] == "motion")].iloc
+    (same_model,) = runs[(runs["tags.mrcert.task"] == "certify") & (runs["params.method.name"] == "camera_motion")].iloc
     assert (
         same_model["tags.mrcert.train_run"] == trained["run_id"] and len(runs[runs["tags.mrcert.task"] == "train"]) == 1
     )
@@ -224,7 +224,7 @@ def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_pa
 
     motion = key(["model.variant=augmented"])
     assert key(["model.variant=augmented", "method=pixelwise"]) != motion
-    assert key(["model.variant=augmented", "method=motion"]) == motion
+    assert key(["model.variant=augmented", "method=camera_motion"]) == motion
     assert key(["model.variant=vanilla", "method=pixelwise"]) == key(["model.variant=vanilla"])  # one vanilla model
     pixelwise = key(["model.variant=augmented", "method=pixelwise"])
     # An evaluation's model trained for another method: that method's train run.
@@ -235,7 +235,7 @@ def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_pa
     # Pixel noise never sees the motion: one pixel-noise model serves every axis.
     assert key(["model.variant=augmented", "method=pixelwise", "motion=rx"]) == pixelwise
     assert key(["model.variant=augmented", "motion=rx"]) != motion
-    # The key of method=motion runs is the one they had before methods existed: no method.* in it.
+    # The key of method=camera_motion runs is the one they had before methods existed: no method.* in it.
     values = identify(compose_cfg(["task=train", "model.variant=augmented"], tmp_path), TASKS["train"].identity).values
     assert not any(k.startswith("method") for k in values)
 

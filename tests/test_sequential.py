@@ -7,7 +7,7 @@ from scipy.stats import binom, norm
 from statsmodels.stats.proportion import proportion_confint
 
 from mrcert.core.sequential import SequentialDesign
-from mrcert.core.smoothing import MotionSmoothing, SmoothedClassifier, image_generator
+from mrcert.core.smoothing import CameraMotionSmoothing, SmoothedClassifier, image_generator
 from tests.test_smoothing import Constant, tiny_sample
 
 
@@ -16,7 +16,7 @@ class Simulated(SmoothedClassifier):
     per sample (no rendering), so the real CERTIFY code runs on thousands of streams."""
 
     def __init__(self, p: float, seed: int, sigma: float = 1.0):
-        super().__init__(None, MotionSmoothing(("tz",), (sigma,)), 2)
+        super().__init__(None, CameraMotionSmoothing(("tz",), (sigma,)), 2)
         self.p, self.rng = p, np.random.default_rng(seed)
 
     def sample_counts(self, render, n, generator, center=None):
@@ -98,7 +98,7 @@ def test_the_reported_bound_exceeds_the_true_pa_with_probability_at_most_alpha(p
 
 
 def test_sequential_certificates_stop_at_the_first_look_on_a_sure_image_whatever_the_batch():
-    dist = MotionSmoothing(("tz",), (0.1,))
+    dist = CameraMotionSmoothing(("tz",), (0.1,))
     smoothed, render = SmoothedClassifier(Constant(2), dist, 4, batch_size=64), tiny_sample().renderer()
     cert = smoothed.certify_sequential(render, 100, 1000, 0.01, 0.1, 50, image_generator(0, 0))
     design = SequentialDesign.plan(1000, 0.01, norm.cdf(1.0), 50)
@@ -124,7 +124,7 @@ class Noisy(torch.nn.Module):
 
 
 def test_sequential_stops_early_when_the_radius_is_out_of_reach():
-    dist = MotionSmoothing(("tz",), (0.1,))
+    dist = CameraMotionSmoothing(("tz",), (0.1,))
     smoothed = SmoothedClassifier(Noisy(), dist, 2, batch_size=100)
     cert = smoothed.certify_sequential(tiny_sample().renderer(), 100, 1000, 0.01, 0.1, 50, image_generator(0, 1))
     assert cert.n <= 100 and cert.radius < 0.1  # pA = 0.6 is far below Phi(1) = 0.84: no need to draw 1,000

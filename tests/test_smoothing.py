@@ -14,7 +14,7 @@ from torch import nn
 from mrcert.__main__ import run_task
 from mrcert.core.smoothing import (
     ABSTAIN,
-    MotionSmoothing,
+    CameraMotionSmoothing,
     SmoothedClassifier,
     image_generator,
     lower_confidence_bound,
@@ -72,7 +72,7 @@ def test_clopper_pearson_oracles():
 
 
 def test_constant_classifier_certifies_2_605_sigma():
-    dist = MotionSmoothing(("tz",), (0.1,))
+    dist = CameraMotionSmoothing(("tz",), (0.1,))
     smoothed = SmoothedClassifier(Constant(2), dist, 4)
     cert = smoothed.certify(tiny_sample().renderer(), 100, 1000, 0.01, image_generator(0, 0))
     assert (cert.prediction, cert.count_a) == (2, 1000)
@@ -96,7 +96,7 @@ class NaNFor(Constant):
 def test_a_non_finite_logit_is_never_a_vote():
     """NaN logits argmax to class 0; they must count for no class: a model with NaN logits
     everywhere abstains, and one with them on some samples gets no votes from those."""
-    dist = MotionSmoothing(("tz",), (0.1,))
+    dist = CameraMotionSmoothing(("tz",), (0.1,))
     render = tiny_sample().renderer()
     nan = SmoothedClassifier(NaNFor(2, threshold=-1.0), dist, 4)
     assert nan.sample_counts(render, 50, image_generator(0, 0)).tolist() == [0, 0, 0, 0]
@@ -112,7 +112,7 @@ def test_predict_abstains_on_ties_and_close_counts():
     assert decide(np.array([45, 55, 0]), 0.01) == ABSTAIN
     assert decide(np.array([0, 0, 0]), 0.01) == ABSTAIN
     assert decide(np.array([10, 0, 90]), 0.01) == 2
-    smoothed = SmoothedClassifier(Constant(1), MotionSmoothing(("rz",), (0.12,)), 4)
+    smoothed = SmoothedClassifier(Constant(1), CameraMotionSmoothing(("rz",), (0.12,)), 4)
     assert smoothed.predict(tiny_sample().renderer(), 100, 0.01, image_generator(0, 3)) == 1
     # With 10 samples PREDICT abstains unless at least 10 agree (binomial p of 9 vs 1 is 0.021 > 0.01);
     # the robot experiment's vote takes the majority and never abstains (ties: the lowest class).
@@ -124,13 +124,13 @@ def test_predict_abstains_on_ties_and_close_counts():
 
 
 def test_theorem_1_distribution():
-    dist = MotionSmoothing(("tx", "ty", "tz", "rz"), (0.05, 0.05, 0.1, 0.122173))
+    dist = CameraMotionSmoothing(("tx", "ty", "tz", "rz"), (0.05, 0.05, 0.1, 0.122173))
     assert "ellipsoid" in dist.region() and dist.radius(0.99) == pytest.approx(NormalDist().inv_cdf(0.99), abs=1e-12)
     m = dist.sample(20000, image_generator(0, 0))
     assert (m[:, [3, 4]] == 0).all()
     np.testing.assert_allclose(m[:, [0, 1, 2, 5]].std(0).numpy(), [0.05, 0.05, 0.1, 0.122173], rtol=0.03)
     with pytest.raises(MrcertError, match="Theorem 1"):
-        MotionSmoothing(("rx", "rz"), (0.1, 0.1))
+        CameraMotionSmoothing(("rx", "rz"), (0.1, 0.1))
 
 
 def certify_rows(outputs: Path) -> pd.DataFrame:
@@ -311,11 +311,11 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
     from mrcert.tasks.attack import attack_motions
 
     bundle = load(cfg.data)
-    samples = bundle.samples(crop=MotionSmoothing(("tz",), (0.1,)).crop_bound(6.0))
+    samples = bundle.samples(crop=CameraMotionSmoothing(("tz",), (0.1,)).crop_bound(6.0))
     model = load_classifier(cfg, 3, "cpu")
     for _, row in rows.iterrows():
         sample = samples[int(row.idx)]
-        smoothed = SmoothedClassifier(model, MotionSmoothing(("tz",), (0.1,)), 3)
+        smoothed = SmoothedClassifier(model, CameraMotionSmoothing(("tz",), (0.1,)), 3)
         assert row.predict == smoothed.predict(sample.renderer(), 30, 0.01, image_generator(0, int(row.idx)))
         assert row.label == sample.label and row.correct == int(row.predict == sample.label)
     assert rows.idx.tolist() == [0, 1, 2] and smooth["num_images"] == 3
@@ -340,7 +340,7 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
             with torch.inference_mode():
                 at = model(render(torch.cat([torch.zeros(1, 6, dtype=torch.float64), motions]))).argmax(1)
             assert (row.base_benign, row.base_robust) == (int(at[0] == row.label), int((at[1:] == row.label).all()))
-            smoothed = SmoothedClassifier(model, MotionSmoothing(("tz",), (0.1,)), 3)
+            smoothed = SmoothedClassifier(model, CameraMotionSmoothing(("tz",), (0.1,)), 3)
             expected = (1, "-", None)
             for k, m in enumerate(motions):
                 decision = smoothed.predict(render, n, 0.01, image_generator(acfg.seed, i, "predict", k), m)
@@ -372,7 +372,7 @@ def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_predicti
     cfg = tiny_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", f"motion={axis}"], tmp_path)
     bundle = load(cfg.data)
     model = load_classifier(cfg, 3, torch.device("cpu"))
-    dist = MotionSmoothing((axis,), (sigma,))
+    dist = CameraMotionSmoothing((axis,), (sigma,))
     samples = bundle.samples(crop=dist.crop_bound(6.0))
     flipped, abstained, decisive = 0, 0, 0
     for i in range(len(samples)):
@@ -403,7 +403,7 @@ class Brightness(nn.Module):
 
 
 def test_overlapped_rendering_gives_the_same_votes():
-    dist = MotionSmoothing(("rz",), (0.3,))
+    dist = CameraMotionSmoothing(("rz",), (0.3,))
     plain = SmoothedClassifier(Brightness(), dist, 4, batch_size=100)
     overlapped = SmoothedClassifier(Brightness(), dist, 4, batch_size=100, overlap=True)
     a = plain.sample_counts(tiny_sample().renderer(), 450, image_generator(0, 9))
@@ -439,7 +439,7 @@ def test_renders_draw_several_model_batches_at_once_and_give_the_same_votes(over
     """Each render call costs a fixed amount besides its images, so the tasks draw several model
     batches per call (runtime.render_batch); the model still classifies batch by batch, and the
     votes are those of one render per batch."""
-    dist = MotionSmoothing(("rz",), (0.3,))
+    dist = CameraMotionSmoothing(("rz",), (0.3,))
     model = Batches()
     chunked = SmoothedClassifier(model, dist, 4, batch_size=16, overlap=overlap, render_batch=64)
     render = Calls(tiny_sample().renderer())
@@ -457,7 +457,7 @@ def test_render_batch_is_whole_model_batches_within_the_pixel_budget():
     assert render_batch(200, 90, 160) == 200  # one batch over the budget is still rendered whole
     assert render_batch(16, 1080, 1920) == 16
     with pytest.raises(ValueError, match="render_batch=40 must be a multiple of batch_size=16"):
-        SmoothedClassifier(Brightness(), MotionSmoothing(("rz",), (0.3,)), 4, 16, render_batch=40)
+        SmoothedClassifier(Brightness(), CameraMotionSmoothing(("rz",), (0.3,)), 4, 16, render_batch=40)
 
 
 def test_the_tasks_render_several_batches_at_once(trained, tmp_path):
@@ -503,7 +503,7 @@ def test_the_tasks_inference_path_predicts_the_classes_of_the_eager_model(traine
 def test_a_certificate_carries_the_unit_of_its_radius(axes, sigmas, radius_unit, sigma_unit):
     """One axis: its unit (metres for t*, radians for r*, by the axis's place in the motion
     vector); several: Theorem 1's ellipsoid, whose radius is in sigma units."""
-    dist = MotionSmoothing(axes, sigmas)
+    dist = CameraMotionSmoothing(axes, sigmas)
     cert = SmoothedClassifier(Constant(2), dist, 4).certify(
         tiny_sample().renderer(), 8, 40, 0.01, image_generator(0, 0)
     )

@@ -11,7 +11,7 @@ from mrcert.__main__ import bind, run_task
 from mrcert.core.geometry import matrix_to_motion
 from mrcert.core.models import build_model
 from mrcert.core.projection import camera_points, project
-from mrcert.core.smoothing import MotionSmoothing
+from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.data.holdout import validation_split
 from mrcert.data.sources import load
 from mrcert.errors import MrcertError
@@ -188,7 +188,7 @@ def test_selection_ties_go_to_the_lower_validation_loss_and_sources_without_pose
 def test_augmentation_changes_images_and_equals_the_projection_at_the_drawn_motions(tmp_path):
     cfg = compose_cfg([*TINY_TRAIN, "data.protocol.train.per_class=4"], tmp_path)
     bundle = load(cfg.data)
-    augment = MotionSmoothing(("rz",), (0.122173,))
+    augment = CameraMotionSmoothing(("rz",), (0.122173,))
     vanilla, augmented = np.array(bundle.train().images), np.array(bundle.train(augment, 0).images)
     assert (vanilla != augmented).any(axis=-1).mean(axis=(1, 2)).min() > 0.05
     split, drawn = bundle.split("train"), augment.training_motions(len(vanilla), 0)
@@ -199,17 +199,17 @@ def test_augmentation_changes_images_and_equals_the_projection_at_the_drawn_moti
         img, _ = project(cam, torch.from_numpy(colors), bundle.K, drawn[i : i + 1], 90, 160)
         expected = (img[0] * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
         assert (expected == augmented[i]).all(axis=-1).mean() > 0.995  # equal up to float rounding at pixel edges
-    many = MotionSmoothing(("tx",), (0.05,)).training_motions(20000, 3)[:, 0]
+    many = CameraMotionSmoothing(("tx",), (0.05,)).training_motions(20000, 3)[:, 0]
     assert abs(float(many.mean())) < 0.002 and abs(float(many.std()) - 0.05) < 0.002
     # The stream augmented models have always been trained on, under the cache key it always had.
     old = np.random.default_rng([3, 1000]).normal(0.0, 0.05, 20000)
     assert np.array_equal(many.numpy(), old)
-    assert MotionSmoothing(("tx",), (0.05,)).training_key(3) == {"axis": "tx", "sigma": 0.05, "seed": 3}
+    assert CameraMotionSmoothing(("tx",), (0.05,)).training_key(3) == {"axis": "tx", "sigma": 0.05, "seed": 3}
 
 
 def test_a_multi_axis_method_augments_every_axis_it_smooths():
     """Theorem 1's combinations train too: each smoothed axis drawn with its own sigma."""
-    dist = MotionSmoothing(("tx", "ty", "tz", "rz"), (0.05, 0.05, 0.1, 0.122173))
+    dist = CameraMotionSmoothing(("tx", "ty", "tz", "rz"), (0.05, 0.05, 0.1, 0.122173))
     drawn = dist.training_motions(20000, 0)
     assert np.allclose(drawn.std(0).numpy(), [0.05, 0.05, 0.1, 0, 0, 0.122173], atol=0.003)
     assert (drawn[:, 3:5] == 0).all() and dist.training_key(0)["axes"] == ["tx", "ty", "tz", "rz"]

@@ -6,7 +6,7 @@ every task: ``task=train`` renders an augmented model's training images under
 :meth:`Method.training_motions` and perturbs each batch with :meth:`Method.perturb`;
 :class:`~mrcert.core.smoothing.SmoothedClassifier` counts votes over :meth:`Method.views`
 (PREDICT, the attack) and certifies with :meth:`Method.certify`. Two implementations:
-camera motion smoothing (:class:`~mrcert.core.smoothing.MotionSmoothing`, ``method=motion``)
+camera motion smoothing (:class:`~mrcert.core.smoothing.CameraMotionSmoothing`, ``method=camera_motion``)
 and pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing`, ``method=pixelwise``).
 
 A further method touches its own module (a subclass of :class:`Method`), one line of

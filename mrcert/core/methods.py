@@ -40,10 +40,23 @@ class Registered:
 
 METHODS: dict[str, Registered] = {
     # Camera motion smoothing's parameters are all in motion.*: its method group adds nothing.
-    "motion": Registered("mrcert.core.smoothing:MotionSmoothing", MethodConfig, unkeyed=("method",)),
+    "camera_motion": Registered("mrcert.core.smoothing:CameraMotionSmoothing", MethodConfig, unkeyed=("method",)),
     # Pixel noise: one model serves every axis.
     "pixelwise": Registered("mrcert.core.pixelwise:PixelwiseSmoothing", PixelwiseConfig, unkeyed_model=("motion",)),
 }
+
+FORMER_NAMES = {"motion": "camera_motion"}
+"""Names methods had in runs made by earlier versions (``method=motion``, beside the ``motion``
+config group): a stored config is read with the current name (:func:`current_names`)."""
+
+
+def current_names(data: dict) -> dict:
+    """A stored config (plain data) with every former method name it holds (``method.name``,
+    ``model.trained_for.name``) replaced by the current one."""
+    for node in (data.get("method"), (data.get("model") or {}).get("trained_for")):
+        if isinstance(node, dict) and node.get("name") in FORMER_NAMES:
+            node["name"] = FORMER_NAMES[node["name"]]
+    return data
 
 
 def registered(name: str) -> Registered:

@@ -25,7 +25,7 @@ from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
 from mrcert.core.method import ABSTAIN, Certificate, Method, SceneRender, single_axis
 from mrcert.core.sequential import lower_confidence_bound
-from mrcert.core.smoothing import MotionSmoothing, image_generator
+from mrcert.core.smoothing import CameraMotionSmoothing, image_generator
 from mrcert.errors import ConfigError, MrcertError
 
 NOISE_BLOCK = 16
@@ -362,7 +362,7 @@ class PixelwiseSmoothing(Method):
 
     def crop_bound(self, sigmas: float) -> CropBound:
         """The interval's motions: motion smoothing's bound for one standard deviation of ``half_width``."""
-        return MotionSmoothing((self.axis,), (self.half_width,)).crop_bound(1.0)
+        return CameraMotionSmoothing((self.axis,), (self.half_width,)).crop_bound(1.0)
 
     def reach(self, n: int, alpha: float) -> float:
         """The largest radius a frame can be certified for: all ``n`` votes for one class, at

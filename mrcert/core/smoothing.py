@@ -32,8 +32,8 @@ DECISIONS = ("predict", "vote")
 
 
 @dataclass(frozen=True)
-class MotionSmoothing(Method):
-    """Camera motion smoothing (``method=motion``): a zero-mean Gaussian over some motion
+class CameraMotionSmoothing(Method):
+    """Camera motion smoothing (``method=camera_motion``): a zero-mean Gaussian over some motion
     components, one sigma each, that augments the training images and smooths the classifier."""
 
     axes: tuple[str, ...]
@@ -51,9 +51,9 @@ class MotionSmoothing(Method):
     sequential = True
 
     @classmethod
-    def from_config(cls, method: DictConfig | None, motion: DictConfig) -> MotionSmoothing:
+    def from_config(cls, method: DictConfig | None, motion: DictConfig) -> CameraMotionSmoothing:
         """``motion.axes`` + ``motion.sigmas`` (multi-axis), else ``motion.axis`` + ``motion.sigma``
-        (``method=motion`` has no parameters of its own)."""
+        (``method=camera_motion`` has no parameters of its own)."""
         if motion.get("axes"):
             try:
                 return cls(tuple(motion.axes), tuple(float(s) for s in motion.sigmas))
@@ -257,7 +257,7 @@ class SmoothedClassifier:
     :func:`licensed` admits): if :meth:`certify` returns class ``c`` with radius ``R``, then with
     probability at least ``1 - alpha`` over its sampling, ``g(phi(x, delta)) = c`` for every
     camera motion ``delta`` on the smoothed components inside the region of
-    :meth:`MotionSmoothing.region` (``|delta| < R`` on one axis). :meth:`predict` returns
+    :meth:`CameraMotionSmoothing.region` (``|delta| < R`` on one axis). :meth:`predict` returns
     ``g(x)`` or :data:`ABSTAIN`, and is wrong with probability at most ``alpha``.
     """
 

@@ -302,7 +302,7 @@ def trained_for(data: dict) -> dict | None:
     value = data.get("model", {}).get("trained_for")
     if value is None:
         return None
-    allowed = "a method's training settings, e.g. {name: pixelwise, sigma: 0.25} or {name: motion}"
+    allowed = "a method's training settings, e.g. {name: pixelwise, sigma: 0.25} or {name: camera_motion}"
     if not isinstance(value, dict) or "name" not in value:
         raise ConfigError("model.trained_for", value, allowed)
     try:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from mrcert.core.methods import current_names
 from mrcert.errors import MrcertError
 from mrcert.infra.store import FileLock, ensure_sqlite_store, probe_server
 from mrcert.infra.tasks import TASKS
@@ -207,6 +208,11 @@ def artifact(client, run_id: str, path: str) -> Path:
         return Path(client.download_artifacts(run_id, path))
     except Exception as exc:  # noqa: BLE001 - a missing artifact, an unreachable store
         raise MrcertError(f"runs:/{run_id}/{path} cannot be fetched from MLflow: {exc}") from None
+
+
+def read_run_config(path: Path) -> DictConfig:
+    """A run's ``resolved_config.yaml`` as this version reads it (former method names renamed)."""
+    return OmegaConf.create(current_names(OmegaConf.to_container(OmegaConf.load(path))))
 
 
 def run_file(client, run_id: str, output_dir: str | None, name: str) -> Path | None:

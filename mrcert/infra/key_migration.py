@@ -20,9 +20,9 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from mrcert.infra.experiment import all_runs, artifact, run_file
+from mrcert.infra.experiment import all_runs, artifact, read_run_config, run_file
 from mrcert.infra.identity import KEY_SCHEME, identify
 from mrcert.infra.log_keys import rekey
 from mrcert.infra.tasks import TASKS
@@ -56,7 +56,7 @@ def _config(client, run) -> DictConfig | None:
     """A run's ``resolved_config.yaml`` (None when it is gone or unreadable)."""
     path = run_file(client, run.info.run_id, run.data.tags.get("mrcert.output_dir"), "resolved_config.yaml")
     try:
-        return None if path is None else OmegaConf.load(path)
+        return None if path is None else read_run_config(path)
     except Exception:  # noqa: BLE001 - a config this version cannot read
         return None
 

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
 from mrcert.infra.config import CONF_DIR
-from mrcert.infra.experiment import artifact, run_file
+from mrcert.infra.experiment import artifact, read_run_config, run_file
 from mrcert.infra.schema import SCHEMAS
 from mrcert.infra.stages import resolve
 from mrcert.infra.tasks import TASKS
@@ -209,12 +209,10 @@ class RunIndex:
 
 def _run_config(run: pd.Series) -> DictConfig:
     """A run's resolved config (its ``resolved_config.yaml``)."""
-    from omegaconf import OmegaConf
-
     path = _run_file(run, "resolved_config.yaml")
     if path is None:
         raise MrcertError(f"run {run['run_id']} has no resolved_config.yaml")
-    return OmegaConf.load(path)
+    return read_run_config(path)
 
 
 def _run_file(run: pd.Series, name: str) -> Path | None:
