@@ -61,8 +61,8 @@ reproduce-tables: $(STAMP) ## every table and figure of the paper and the eviden
 side-by-side: $(STAMP) ## pixel-wise smoothing beside camera motion smoothing (docs/results.md; after make reproduce-tables' certify stage)
 	$(MRCERT) -m experiment=side_by_side task=train
 	$(MRCERT) -m experiment=side_by_side task=certify
-	$(MRCERT) experiment=reproduce_quick task=certify motion=tz model.variant=augmented \
-	  'model.trained_for={name:pixelwise,sigma:0.25}'  # motion smoothing on the pixel-noise model
+	$(MRCERT) -m experiment=reproduce_quick task=certify motion=tz model.variant=augmented \
+	  'model.trained_for={name:pixelwise,sigma:0.25},{name:pixelwise,sigma:0.5}'  # motion smoothing on each pixel-noise model
 	$(PAGE_TABLES)
 
 learning-curve: $(STAMP) ## the learning curve: test accuracy by training poses, separation rule, seed (small CNN, ResNet-18)

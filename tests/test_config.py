@@ -372,7 +372,7 @@ def test_the_shipped_experiments_give_the_settings_their_tables_rest_on():
         task["tabletop", "smooth"]["n"],
         task["tabletop", "smooth"]["decision"],
     ) == (1000, 10, "vote")
-    assert task["side_by_side", "certify"]["skip"] == 10
+    assert task["side_by_side", "certify"]["skip"] == 5
 
 
 @pytest.mark.parametrize(

@@ -181,6 +181,7 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     model = load_classifier(OmegaConf.merge(train, {"model": {"checkpoint": result["checkpoint"]}}), 3, "cpu")
     test_x, test_y = as_tensors(bundle.test())
     assert accuracy(model, test_x, test_y, "cpu", 64, build_method(train)) == result["test_acc"]
+    assert accuracy(model, test_x, test_y, "cpu", 64) == result["test_acc_clean"]  # and without the noise
     cfg = compose_cfg(
         [*TINY, *RECIPE, *PIXELWISE, "task=certify", "model.variant=augmented", "task.n0=8", "task.n=40", "task.max=2"],
         tmp_path,

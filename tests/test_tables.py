@@ -539,9 +539,9 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     shared = [*SETTINGS, "task.n0=8", "task.n=40"]
     motion = ["experiment=reproduce_quick", "motion=tz", "model.variant=augmented"]
     pixelwise = ["experiment=side_by_side", "method.certify.half_width=0.001", "method.certify.frames=3"]
-    run(tmp_path, [*motion, *SETTINGS, "task=train"], "cms-train")
+    cms_train = run(tmp_path, [*motion, *SETTINGS, "task=train"], "cms-train")
     run(tmp_path, [*motion, *shared, "task=certify"], "cms")
-    run(tmp_path, [*pixelwise, *SETTINGS, "task=train"], "pws-train")
+    pws_train = run(tmp_path, [*pixelwise, *SETTINGS, "task=train"], "pws-train")
     run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
     # Motion smoothing on the pixel-noise model: both methods on one base classifier.
     run(tmp_path, [*motion, *shared, "task=certify", "model.trained_for={name:pixelwise,sigma:0.25}"], "cms-noise")
@@ -567,6 +567,22 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     assert (pws.n == 40).all()
     assert (pixel["poses projected / image"], pixel["forward passes / image"]) == (3, 48)
     assert pixel["seconds / image"] == pws.seconds.mean()
+    # Each certified accuracy with its exact 95% interval (statsmodels' Clopper-Pearson as the oracle).
+    from statsmodels.stats.proportion import proportion_confint
+
+    for row in (motion, on_noise, pixel):
+        k, n = round(row["certified accuracy"] * row["images"]), row["images"]
+        assert (row["low"], row["high"]) == pytest.approx(proportion_confint(k, n, alpha=0.05, method="beta"), abs=1e-9)
+    # The base classifiers' test accuracy from their train runs: the pixel-noise model's on clean and
+    # on noisy images (the images it is used on), the motion-augmented model's on clean ones.
+    assert (motion["base clean accuracy"], np.isnan(motion["base noisy accuracy"])) == (cms_train["test_acc"], True)
+    for row in (on_noise, pixel):
+        assert (row["base clean accuracy"], row["base noisy accuracy"]) == (
+            pws_train["test_acc_clean"],
+            pws_train["test_acc"],
+        )
+    shown = side_by_side.table(df)
+    assert list(shown["95% interval"]) == [f"{a:.2f}-{b:.2f}" for a, b in zip(df["low"], df["high"], strict=True)]
     fig = side_by_side.figure(df)
     assert len(fig.axes[0].lines) == 3  # motion smoothing's curves (two models) and pixel-wise smoothing's point
 

@@ -224,6 +224,17 @@ def certified_accuracy(df: pd.DataFrame, radius: float) -> float:
     return float(certified(df, radius).mean())
 
 
+def certified_interval(df: pd.DataFrame, radius: float, level: float = 0.95) -> tuple[float, float]:
+    """Exact (Clopper-Pearson) interval at ``level`` for the certified accuracy at ``radius``, the
+    log's images taken as a sample of the test views (NaN, NaN for an empty log)."""
+    if len(df) == 0:
+        return float("nan"), float("nan")
+    from scipy.stats import binomtest
+
+    ci = binomtest(int(certified(df, radius).sum()), len(df)).proportion_ci(confidence_level=level, method="exact")
+    return float(ci.low), float(ci.high)
+
+
 def radius_grid(step: float, max_radius: float) -> np.ndarray:
     """``k * step`` for k = 0..K (multiplied, never accumulated)."""
     k = np.arange(int(np.floor(max_radius / step + 1e-9)) + 1)

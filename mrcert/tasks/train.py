@@ -10,9 +10,10 @@ in pitch and roll as the test poses, docs/method.md §3), or, for a source witho
 poses (``train.val_fraction`` per class, :mod:`mrcert.data.holdout`): ``best.pt`` is the epoch
 with the highest ``val_acc``, ties going to the lower ``val_loss`` (then the earlier epoch).
 The test images never select anything: the test accuracy of ``best.pt`` is measured once, at
-the end (``test_acc``); each epoch's test accuracy is recorded too (``epoch_test_acc``) for the
-learning curve, and nothing reads it back. Each epoch ends
-with an atomic ``last.pt`` (model, optimiser, scheduler, epoch, best), so a run restarted with
+the end (``test_acc``; an augmented model's also on the clean test images, ``test_acc_clean``,
+which differs from it for a model trained on perturbed images); each epoch's test accuracy is
+recorded too (``epoch_test_acc``) for the learning curve, and nothing reads it back. Each epoch
+ends with an atomic ``last.pt`` (model, optimiser, scheduler, epoch, best), so a run restarted with
 ``task.resume=true`` continues in the same MLflow run and ends with the same weights as an
 uninterrupted one. ``best.pt`` and ``last.pt`` are logged as artifacts under ``checkpoints/``.
 """
@@ -222,6 +223,8 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     chosen = checkpoints.selected_epoch(best_path, model)
     test_acc = accuracy(model, test_x, test_y, device, t.eval_batch_size, augment, int(cfg.seed))
     summary = {"test_acc": test_acc, "best_epoch": chosen + 1}
+    if augment is not None:  # and on the clean test images (a pixel-noise model's test_acc is on noisy ones)
+        summary["test_acc_clean"] = accuracy(model, test_x, test_y, device, t.eval_batch_size)
     summary |= {"best_val_acc": best[0], "best_val_loss": best[1]} if best is not None else {}
     ctx.tracker.log_metrics(summary)
     ctx.tracker.log_artifact(best_path, checkpoints.ARTIFACT_DIR)
