@@ -171,6 +171,33 @@ PIXELWISE = ["method=pixelwise", "method.certify.frames=3", "method.certify.half
 RECIPE = ["train.epochs=2", "train.batch_size=8"]
 
 
+def test_a_pixel_noise_model_s_test_accuracy_is_read_on_noisy_and_on_clean_images(tmp_path, monkeypatch):
+    """``test_acc`` on the images as the model is used (with its method's pixel noise),
+    ``test_acc_clean`` on the clean ones. On tiny data both read chance, so the images each metric
+    was measured on are told apart by their mean: noise of sigma 0.25 leaves it, but not each pixel."""
+    import mrcert.tasks.train as train_task
+
+    seen_means = []
+
+    def measured(model, images, labels, device, batch, seen=None, seed=0):
+        clean = train_task.to_device(images, torch.device("cpu"))
+        x = (
+            clean
+            if seen is None
+            else torch.cat([seen.perturb(clean[i : i + 1], torch.Generator()) for i in range(len(clean))])
+        )
+        seen_means.append(float((x - clean).abs().mean()))
+        return float(len(seen_means))  # the n-th measurement reads n
+
+    cfg = compose_cfg([*TINY, *RECIPE, *PIXELWISE, "task=train", "model.variant=augmented", "train.epochs=1"], tmp_path)
+    monkeypatch.setattr(train_task, "accuracy", measured)
+    result = run_task(cfg, tmp_path / "t")
+    # The last two measurements: test_acc (noisy images: they differ from the clean ones by about
+    # 0.25 * sqrt(2 / pi) per pixel), then test_acc_clean (the images themselves).
+    assert (result["test_acc"], result["test_acc_clean"]) == (len(seen_means) - 1, len(seen_means))
+    assert seen_means[-2] == pytest.approx(0.25 * np.sqrt(2 / np.pi), rel=0.05) and seen_means[-1] == 0.0
+
+
 def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_path):
     """``mrcert task=certify method=pixelwise motion=tz``: its own augmented model (pixel noise),
     one certificate per image for the whole interval, a finished MLflow run keyed by the method."""
