@@ -150,11 +150,21 @@ class RunIndex:
         return None if hits.empty else str(hits.iloc[0]["run_id"])
 
     def run_tags(self, run_id: str) -> dict[str, str] | None:
+        fields = self._fields(run_id, "tags.")
+        return None if fields is None else {k: str(v) for k, v in fields.items()}
+
+    def metrics(self, run_id: str) -> dict[str, float] | None:
+        """A run's metrics by name (None when the index holds no such run)."""
+        fields = self._fields(run_id, "metrics.")
+        return None if fields is None else {k: float(v) for k, v in fields.items()}
+
+    def _fields(self, run_id: str, prefix: str) -> dict | None:
+        """A run's recorded values under ``prefix`` (``tags.``, ``metrics.``), by name."""
         hits = self.df[self.df["run_id"] == run_id]
         if hits.empty:
             return None
         row = hits.iloc[0]
-        return {c[len("tags.") :]: str(row[c]) for c in hits.columns if c.startswith("tags.") and pd.notna(row[c])}
+        return {c[len(prefix) :]: row[c] for c in hits.columns if c.startswith(prefix) and pd.notna(row[c])}
 
     def artifact(self, run_id: str, path: str) -> Path:
         import mlflow

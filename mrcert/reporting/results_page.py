@@ -129,18 +129,18 @@ def _counted(holds: list[bool], rows: list[str]) -> dict:
 def base_models(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
     """Each evaluated model's training record: accuracy on its validation poses (what selected
     ``best.pt``) and on the test images (measured once, after training)."""
-    df = src.index.df.set_index("run_id")
     rows = {}
     for j in jobs:
         run = j.certify.train_run if j.certify.filled else None  # None: an import
         key = j.variant + (j.axis if j.variant == "augmented" else "")
-        if not isinstance(run, str) or run not in df.index or key in rows:
+        metrics = src.index.metrics(run) if isinstance(run, str) else None
+        if metrics is None or key in rows:
             continue
         label = "vanilla (every axis)" if j.variant == "vanilla" else f"augmented on {j.axis}"
         rows[key] = {
             "model": f"{j.arch} {label}",
-            "validation accuracy": df.loc[run].get("metrics.best_val_acc", np.nan),
-            "test accuracy": df.loc[run].get("metrics.test_acc", np.nan),
+            "validation accuracy": metrics.get("best_val_acc", np.nan),
+            "test accuracy": metrics.get("test_acc", np.nan),
         }
     return pd.DataFrame(list(rows.values()))
 

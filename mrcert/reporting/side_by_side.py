@@ -46,12 +46,11 @@ def _costs(log: pd.DataFrame, n: int) -> dict[str, float]:
 def _base_accuracy(src: ExperimentCells, run_id: str | None, noisy: bool) -> dict[str, float]:
     """The base classifier's test accuracy from its train run, on the clean test images and, for
     a pixel-noise model (``noisy``), on the noisy ones it was selected on (its ``test_acc``)."""
-    df = src.index.df.set_index("run_id")
-    metrics = df.loc[run_id] if run_id in df.index else pd.Series(dtype=float)
-    as_seen = float(metrics.get("metrics.test_acc", np.nan))
+    metrics = (src.index.metrics(run_id) if run_id else None) or {}
+    as_seen = metrics.get("test_acc", np.nan)
     if not noisy:
         return {"base clean accuracy": as_seen, "base noisy accuracy": np.nan}
-    return {"base clean accuracy": float(metrics.get("metrics.test_acc_clean", np.nan)), "base noisy accuracy": as_seen}
+    return {"base clean accuracy": metrics.get("test_acc_clean", np.nan), "base noisy accuracy": as_seen}
 
 
 def _certified(log: pd.DataFrame, radius: float) -> dict[str, float]:
