@@ -116,3 +116,17 @@ def test_a_sample_moved_to_the_gpu_renders_motions_beyond_its_crop_exactly():
         images, depth = moved.render(chosen)
         expected = sample.render(chosen)
         assert images.is_cuda and torch.equal(images.cpu(), expected[0]) and torch.equal(depth.cpu(), expected[1])
+
+
+def test_pixel_noise_around_a_gpu_image_is_the_cpu_noise_bit_for_bit():
+    """Pixel-wise smoothing votes over noisy copies of a frame rendered where the model runs: on
+    a GPU the copies are the CPU's (the noise is drawn on the CPU from the seed and moved)."""
+    from mrcert.core.pixelwise import PixelNoise
+
+    image = torch.rand(3, 90, 160, generator=torch.Generator().manual_seed(0))
+    noise = PixelNoise(0.5)
+    indices = torch.tensor([0, 5, 17, 40])
+    cpu = noise.around(image, seed=3)(indices)
+    gpu = noise.around(image.cuda(), seed=3)(indices)
+    assert gpu.device.type == "cuda"
+    assert torch.equal(gpu.cpu(), cpu)

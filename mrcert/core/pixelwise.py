@@ -53,7 +53,7 @@ class PixelNoise:
                 return image.new_empty((0, *image.shape))
             first, last = int(idx.min()) // NOISE_BLOCK, int(idx.max()) // NOISE_BLOCK
             noise = torch.cat([self._block(seed, b, image.shape) for b in range(first, last + 1)])
-            return image + self.sigma * noise[idx - first * NOISE_BLOCK].to(image.dtype)
+            return image + self.sigma * noise[idx - first * NOISE_BLOCK].to(image.device, image.dtype)
 
         return render
 
