@@ -567,6 +567,10 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     assert (pws.n == 40).all()
     assert (pixel["poses projected / image"], pixel["forward passes / image"]) == (3, 48)
     assert pixel["seconds / image"] == pws.seconds.mean()
+    # Seconds per image are a pace on one machine: each row names the machine its run ran on.
+    from mrcert.infra.runtime import machine
+
+    assert list(side_by_side.table(df)["machine"]) == [machine()] * 3
     # Each certified accuracy with its exact 95% interval (statsmodels' Clopper-Pearson as the oracle).
     from statsmodels.stats.proportion import proportion_confint
 

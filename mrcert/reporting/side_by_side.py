@@ -10,7 +10,7 @@ then the pixel-wise run. Each row gives the certified accuracy at the motion rad
 ``|motion| < R``) with its exact (Clopper-Pearson) 95% interval over the images, the base
 classifier's accuracy on the clean test images and, for a pixel-noise model, on noisy ones (its
 train run's ``test_acc_clean`` and ``test_acc``), the camera poses projected and the base
-classifier's forward passes per image, and seconds per image. The figure draws motion
+classifier's forward passes per image, and seconds per image on the machine the run ran on. The figure draws motion
 smoothing's certified accuracy against radius on those images and pixel-wise smoothing's
 certified accuracy at each interval.
 """
@@ -51,6 +51,11 @@ def _base_accuracy(src: ExperimentCells, run_id: str | None, noisy: bool) -> dic
     if not noisy:
         return {"base clean accuracy": as_seen, "base noisy accuracy": np.nan}
     return {"base clean accuracy": metrics.get("test_acc_clean", np.nan), "base noisy accuracy": as_seen}
+
+
+def _machine(src: ExperimentCells, run_id: str) -> str:
+    """The machine a run ran on (its ``mrcert.machine`` tag): seconds per image are its pace there."""
+    return (src.index.run_tags(run_id) or {}).get("mrcert.machine", "unknown")
 
 
 def _certified(log: pd.DataFrame, radius: float) -> dict[str, float]:
@@ -115,6 +120,7 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
                     **_certified(same, half_width),
                     **_base_accuracy(src, motion.train_run, noisy),
                     **_costs(same, int(motion.cfg.task.n)),
+                    "machine": _machine(src, motion.run_ids[0]),
                     "run_id": motion.run_ids[0],
                     "log": same,
                 }
@@ -128,6 +134,7 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
                 **_certified(log, half_width),
                 **_base_accuracy(src, pixelwise.train_run, True),
                 **_costs(log, int(cfg.task.n)),
+                "machine": _machine(src, pixelwise.run_ids[0]),
                 "run_id": pixelwise.run_ids[0],
                 "log": log,
             }
@@ -152,6 +159,7 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
             "poses projected / image",
             "forward passes / image",
             "seconds / image",
+            "machine",
         ]
     ].copy()
     out.insert(
