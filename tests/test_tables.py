@@ -566,6 +566,9 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     # give a radius above the bound), so n0 + n forward passes per frame certified.
     assert (pws.n == 40).all()
     assert (pixel["poses projected / image"], pixel["forward passes / image"]) == (3, 48)
+    # Why each image was left: every margin here is negative, so the bound left them all.
+    assert (pws.margin < 0).all() and (pixel["left by the bound"], pixel["left by the classes"]) == (len(pws), 0)
+    assert motion[["left by the bound", "left by the classes"]].isna().all()
     assert pixel["seconds / image"] == pws.seconds.mean()
     # Seconds per image are a pace on one machine: each row names the machine its run ran on.
     from mrcert.infra.runtime import machine

@@ -10,7 +10,8 @@ then the pixel-wise run. Each row gives the certified accuracy at the motion rad
 ``|motion| < R``) with its exact (Clopper-Pearson) 95% interval over the images, the base
 classifier's accuracy on the clean test images and, for a pixel-noise model, on noisy ones (its
 train run's ``test_acc_clean`` and ``test_acc``), the camera poses projected and the base
-classifier's forward passes per image, and seconds per image on the machine the run ran on. The figure draws motion
+classifier's forward passes per image, seconds per image on the machine the run ran on and, for
+pixel-wise smoothing, the images it left uncertified by cause (the logged ``margin``). The figure draws motion
 smoothing's certified accuracy against radius on those images and pixel-wise smoothing's
 certified accuracy at each interval.
 """
@@ -56,6 +57,18 @@ def _base_accuracy(src: ExperimentCells, run_id: str | None, noisy: bool) -> dic
 def _machine(src: ExperimentCells, run_id: str) -> str:
     """The machine a run ran on (its ``mrcert.machine`` tag): seconds per image are its pace there."""
     return (src.index.run_tags(run_id) or {}).get("mrcert.machine", "unknown")
+
+
+def _why_not(log: pd.DataFrame) -> dict[str, float]:
+    """Pixel-wise smoothing's images left uncertified, by cause, from the log's ``margin`` (the
+    smallest over pieces of the better end frame's radius less the piece's bound): the bound
+    (margin below 0: some piece's images may lie outside both its frames' certified balls) or
+    the frames' classes (margin at least 0: they disagree, or one abstains)."""
+    missed = log[log["radius"] <= 0]
+    return {
+        "left by the bound": float((missed["margin"] < 0).sum()),
+        "left by the classes": float((missed["margin"] >= 0).sum()),
+    }
 
 
 def _certified(log: pd.DataFrame, radius: float) -> dict[str, float]:
@@ -134,6 +147,7 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
                 **_certified(log, half_width),
                 **_base_accuracy(src, pixelwise.train_run, True),
                 **_costs(log, int(cfg.task.n)),
+                **_why_not(log),
                 "machine": _machine(src, pixelwise.run_ids[0]),
                 "run_id": pixelwise.run_ids[0],
                 "log": log,
@@ -156,6 +170,8 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
             "frames",
             "images",
             "certified accuracy",
+            "left by the bound",
+            "left by the classes",
             "poses projected / image",
             "forward passes / image",
             "seconds / image",
@@ -169,7 +185,8 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
     )
     for column in ("base clean accuracy", "base noisy accuracy"):
         out[column] = df[column].map(lambda v: "-" if pd.isna(v) else f"{v:.3f}")
-    out["frames"] = out["frames"].map(lambda f: "-" if pd.isna(f) else str(int(f)))
+    for column in ("frames", "left by the bound", "left by the classes"):
+        out[column] = out[column].map(lambda f: "-" if pd.isna(f) else str(int(f)))
     out["certified accuracy"] = out["certified accuracy"].map(lambda v: f"{v:.3f}")
     for column in ("poses projected / image", "forward passes / image"):
         out[column] = out[column].map(lambda v: f"{v:,.0f}")
