@@ -573,7 +573,8 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     # Seconds per image are a pace on one machine: each row names the machine its run ran on.
     from mrcert.infra.runtime import machine
 
-    assert list(side_by_side.table(df)["machine"]) == [machine()] * 3
+    shown = side_by_side.table(df)
+    assert list(shown["machine"]) == [machine()] * 3
     # Each certified accuracy with its exact 95% interval (statsmodels' Clopper-Pearson as the oracle).
     from statsmodels.stats.proportion import proportion_confint
 
@@ -588,7 +589,6 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
             pws_train["test_acc_clean"],
             pws_train["test_acc"],
         )
-    shown = side_by_side.table(df)
     assert list(shown["95% interval"]) == [f"{a:.2f}-{b:.2f}" for a, b in zip(df["low"], df["high"], strict=True)]
     fig = side_by_side.figure(df)
     assert len(fig.axes[0].lines) == 3  # motion smoothing's curves (two models) and pixel-wise smoothing's point
