@@ -59,6 +59,10 @@ class ExperimentCells:
     link: str = "{run_id}"
     parent: str | None = None  # the sweep table from one sweep's children (a parent run id)
     provenance: list[dict] = field(default_factory=list)
+    read: dict[tuple[str, str], dict[tuple[str, ...], Cell]] = field(default_factory=dict)
+    """Every filled cell read so far, each once, by stage: ``(experiment, task)``, the task with
+    the overrides of the measure that read it first (``attack (attack.k=100)``). Once the
+    tables are built, these are the runs behind them, stage by stage as their experiments ran."""
 
     def experiment_for(self, own: str) -> str:
         """``experiment`` when set, else ``own`` with its ``{profile}`` filled in."""
@@ -73,10 +77,15 @@ class ExperimentCells:
         task = self.certify_task if measure.task == "certify" else measure.task
         fixed = {o.split("=", 1)[0] for o in (*measure.overrides, *self.overrides)}
         combo = tuple(c for c in combo if c.split("=", 1)[0] not in fixed)
-        return self.index.cell(
+        cell = self.index.cell(
             (f"experiment={experiment}", f"profile={self.profile}", f"task={task}", *combo, *measure.overrides)
             + self.overrides
         )
+        ids = tuple(cell.run_ids)
+        if ids and not any(ids in cells for cells in self.read.values()):
+            stage = f"{task} ({', '.join(measure.overrides)})" if measure.overrides else task
+            self.read.setdefault((experiment, stage), {})[ids] = cell
+        return cell
 
     def rows(self, experiment: str, measure: Measure):
         """``(combo, cell)`` of the experiment's jobs for ``measure``, filtered by arch and axis."""

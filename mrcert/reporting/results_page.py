@@ -258,42 +258,62 @@ def run_seconds(run: pd.Series) -> float:
     return (run["end_time"] - run["start_time"]).total_seconds()
 
 
-def stage_times(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
-    """Time per stage: the runs' working wall-clock (``run_seconds``) summed over the stage's
-    runs, the machines they ran on, and the seconds per test image measured in the per-image
-    logs (work only)."""
-    runs = {"train": set(), "certify": set(), "smooth": set(), "attack": set()}
-    images = {"certify": 0, "smooth": 0, "attack": 0}
-    work = {"certify": 0.0, "smooth": 0.0, "attack": 0.0}
-    for j in jobs:
-        for stage in ("certify", "smooth", "attack"):
-            cell = getattr(j, stage)
-            runs[stage].update(cell.run_ids)
-            log = src.index.log(cell)
-            if log is not None:
-                images[stage] += len(log)
-                work[stage] += float(log["seconds"].sum()) if "seconds" in log else float("nan")
-            if cell.filled and cell.train_run is not None:
-                runs["train"].add(cell.train_run)
+def stage_times(src: ExperimentCells) -> pd.DataFrame:
+    """Time per stage of the runs behind the tables built from ``src`` so far (``src.read``):
+    per experiment, the train runs of its evaluated models, then each evaluation stage in the
+    order first read; each with its runs' working wall-clock (``run_seconds``) summed, the
+    machines they ran on and the seconds per test image measured in the per-image logs (work
+    only); a last row sums every stage."""
     df = src.index.df.set_index("run_id")
-    rows = []
-    for stage, ids in runs.items():
-        ids = [i for i in ids if i in df.index]
+    stages: dict[tuple[str, str], tuple[list[str], list[Cell]]] = {}
+    trained: set[str] = set()
+    for experiment in dict.fromkeys(e for e, _ in src.read):
+        cells = [c for (e, _), read in src.read.items() if e == experiment for c in read.values()]
+        train = [r for r in dict.fromkeys(c.train_run for c in cells) if r and r in df.index and r not in trained]
+        trained.update(train)
+        stages[(experiment, "train")] = (train, [])
+        for (e, stage), read in src.read.items():
+            if e == experiment:
+                ids = [r for c in read.values() for r in c.run_ids if r in df.index]
+                stages[(e, stage)] = (ids, list(read.values()))
+    rows, total = [], 0.0
+    for (experiment, stage), (ids, cells) in stages.items():
+        if not ids:
+            continue
         seconds = float(sum(run_seconds(df.loc[i]) for i in ids))
+        total += seconds
+        logs = [log for log in (src.index.log(c) for c in cells) if log is not None]
+        images = sum(len(log) for log in logs)
+        work = sum(float(log["seconds"].sum()) if "seconds" in log else float("nan") for log in logs)
         machines = df.loc[ids, "tags.mrcert.machine"].dropna() if "tags.mrcert.machine" in df else pd.Series()
         rows.append(
             {
+                "experiment": experiment,
                 "stage": stage,
                 "runs": len(ids),
-                "test images": images.get(stage, ""),
-                "run time, summed (h)": round(seconds / 3600, 2),
+                "test images": images or "",
+                "run time, summed (h)": seconds / 3600,
                 "machines": "; ".join(
                     f"{m} ({n} run{'s' if n > 1 else ''})" for m, n in machines.value_counts().sort_index().items()
                 ),
-                "seconds per image": round(work[stage] / images[stage], 2) if images.get(stage) else "",
+                "seconds per image": work / images if images else "",
             }
         )
-    return pd.DataFrame(rows)
+    if rows:
+        runs = sum(r["runs"] for r in rows)
+        rows.append({"experiment": "every stage", "stage": "", "runs": runs, "run time, summed (h)": total / 3600})
+    return pd.DataFrame(rows, columns=STAGE_COLUMNS).fillna("")
+
+
+STAGE_COLUMNS = ["experiment", "stage", "runs", "test images", "run time, summed (h)", "machines", "seconds per image"]
+
+
+def shown_times(times: pd.DataFrame) -> str:
+    """The time table as the page prints it: hours and seconds to two decimals."""
+    shown = times.astype(str)
+    for column in ("run time, summed (h)", "seconds per image"):
+        shown[column] = times[column].map(lambda v: v if v == "" else f"{v:.2f}")
+    return markdown(shown)
 
 
 def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
@@ -339,7 +359,6 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
         return None
     jobs = list(filled.values())
     table = tables.TABLE3.build(paper, show_paper=True, name="paper_profile")
-    times = stage_times(paper, jobs)
     cfg = jobs[0].certify.cfg
     return {
         "profile": PAPER_PROFILE,
@@ -353,7 +372,7 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
         "images": _images(paper, jobs[0].certify),
         "table": markdown(as_text(table.loc[list(filled)])),
         "models": markdown(as_text(base_models(paper, jobs))),
-        "times": markdown(times[times["runs"] > 0].astype(str)),
+        "times": shown_times(stage_times(paper)),
     }
 
 
@@ -426,7 +445,7 @@ def page_context(
         "curve": curve_section,
         "side": side_by_side_section(src, page),
         "paper_profile": paper_profile_section(src),
-        "times": markdown(stage_times(src, jobs).astype(str)) if filled else "",
+        "times": shown_times(stage_times(src)) if filled else "",
         "machines": "; ".join(machines) or "unknown",
     }
 
