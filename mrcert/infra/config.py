@@ -351,6 +351,9 @@ def validate(cfg: DictConfig) -> None:
     shard, shards = task.get("shard", 0), task.get("num_shards")
     if isinstance(shards, int) and isinstance(shard, int) and not 0 <= shard < shards:
         raise ConfigError("task.shard", task.get("shard"), f"an integer in [0, task.num_shards={task['num_shards']})")
+    look, n = task.get("look"), task.get("n")
+    if task.get("sequential") and isinstance(n, int) and not (isinstance(look, int) and 1 <= look <= n):
+        raise ConfigError("task.look", look, f"an integer in [1, task.n={n}]: sequential CERTIFY's first look")
     extent = task.get("extent") or {}
     for axis, value in extent.items():
         if axis not in AXES or not _number(value) or value < 0:
