@@ -83,6 +83,7 @@ test-gpu: $(STAMP) ## the CUDA tests (skipped without a GPU)
 bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run (DEVICE=cuda for the GPU path)
 	$(PY) benchmarks/projection.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/certify.py --threads $(THREADS) --device $(DEVICE)
+	$(PY) benchmarks/verify.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/train.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/sequential.py
 

@@ -54,7 +54,8 @@ def run(args, arch: str) -> None:
     from hydra import compose, initialize_config_dir
 
     from mrcert.core.models import build_model, for_inference
-    from mrcert.core.smoothing import CameraMotionSmoothing, SmoothedClassifier, image_generator
+    from mrcert.core.sampling import SmoothedClassifier, image_generator
+    from mrcert.core.smoothing import CameraMotionSmoothing
     from mrcert.data.sources import load
     from mrcert.infra.config import CONF_DIR
     from mrcert.infra.runtime import batch_size, render_batch

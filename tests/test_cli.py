@@ -187,9 +187,10 @@ def test_bad_value_stops_with_a_clear_message_and_no_traceback(tmp_path):
 
 def test_help_lists_the_tasks(tmp_path):
     out = mrcert(["--help"], tmp_path).stdout
-    assert "Tasks:" in out and "task: attack, certify, gather, import, render, smooth, tables, train" in out
+    listed = "task: attack, certify, export, gather, import, render, smooth, tables, train, verify, viewpoints"
+    assert "Tasks:" in out and listed in out
     tasks = out.split("Tasks:")[1]
-    for name in ("render", "train", "certify", "smooth", "attack", "tables", "import", "gather"):
+    for name in ("render", "train", "certify", "smooth", "attack", "tables", "import", "gather", "verify", "export"):
         assert f"\n  {name} " in tasks
 
 

@@ -12,10 +12,11 @@ ALLOWED = {
     "core": set(),
     "scenes": {"core"},
     "data": {"core", "scenes"},
+    "formats": set(),
     "infra": {"core"},
     "reporting": {"core", "infra"},
-    "tasks": {"core", "scenes", "data", "infra", "reporting"},
-    "__main__": {"core", "scenes", "data", "infra", "reporting", "tasks"},
+    "tasks": {"core", "scenes", "data", "formats", "infra", "reporting"},
+    "__main__": {"core", "scenes", "data", "formats", "infra", "reporting", "tasks"},
 }
 
 

@@ -115,7 +115,7 @@ def test_a_refused_motion_config_stops_before_any_work():
 def test_a_smoothed_prediction_at_a_moved_camera_draws_the_composition_not_the_sum():
     """PREDICT at a camera moved by ``alpha`` renders ``alpha o eps`` (Lemma 1): on the one smoothed
     axis that is ``alpha + eps`` bit for bit; with a rotation it is the composition, never the sum."""
-    from mrcert.core.smoothing import SmoothedClassifier, image_generator
+    from mrcert.core.sampling import SmoothedClassifier, image_generator
 
     seen = []
 

@@ -55,7 +55,7 @@ def test_the_check_finds_a_method_named_in_each_way():
     assert not _naming('if "motion" in ignored:\n    words.remove(str(cfg.method.name))')
 
 
-@pytest.mark.parametrize("layer", ["infra", "tasks"])
+@pytest.mark.parametrize("layer", ["infra", "tasks", "reporting"])
 def test_no_module_of_infra_or_tasks_names_a_method(layer):
     found = {
         str(path.relative_to(ROOT)): hits

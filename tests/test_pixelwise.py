@@ -10,7 +10,8 @@ from scipy.stats import norm
 
 from mrcert.__main__ import run_task
 from mrcert.core.methods import build_method
-from mrcert.core.pixelwise import PixelNoise, PixelwiseSmoothing, frame_motions, interval_certified, piece_bounds
+from mrcert.core.pixelwise import PixelNoise, PixelwiseSmoothing, frame_motions, interval_certified
+from mrcert.core.pose_bounds import piece_bounds
 from mrcert.core.projection import project
 from mrcert.data.sources import load
 from mrcert.errors import ConfigError, MrcertError
@@ -358,7 +359,7 @@ def test_frames_are_spent_only_while_the_interval_can_still_be_certified(sigma, 
     yet certified); the log's n counts the frames actually certified."""
     method = PixelwiseSmoothing("tz", sigma, 0.02, 5)
     frames = ScriptedFrames(script)
-    cert = method.certify(frames, _scene_render(0.02), 8, 40, 0.01, torch.Generator().manual_seed(0))
+    cert = method.certify_smoothed(frames, _scene_render(0.02), 8, 40, 0.01, torch.Generator().manual_seed(0))
     assert frames.calls == frames_run and cert.n == 40 * frames_run
     assert cert.radius == radius and cert.prediction == prediction
     # The log's margin: the worst piece's better end, its radius (the reach for frames not

@@ -1,27 +1,30 @@
-"""The plug point of a certification method: what it trains on, how it draws a test view's
-noisy samples, and how it turns their votes into a certificate.
+"""The plug point of a certification method: a certifier that takes the base classifier and a
+test sample and returns a certificate, and what else the method serves.
 
-A method is built once from the config (``method`` and ``motion`` groups) and is then used by
-every task: ``task=train`` renders an augmented model's training images under
-:meth:`Method.training_motions` and perturbs each batch with :meth:`Method.perturb`;
-:class:`~mrcert.core.smoothing.SmoothedClassifier` counts votes over :meth:`Method.views`
-(PREDICT, the attack) and certifies with :meth:`Method.certify`. Two implementations:
-camera motion smoothing (:class:`~mrcert.core.smoothing.CameraMotionSmoothing`, ``method=camera_motion``)
-and pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing`, ``method=pixelwise``).
+A method is built once from the config (``method`` and ``motion`` groups); the evaluation tasks
+bind it to the trained base classifier (:meth:`Method.certifier`) and hand each test sample's
+:data:`Render` to the certifier. What a method serves besides ``task=certify`` it declares in
+:attr:`Method.serves` (:data:`SERVICES`); config validation refuses any other task before a
+run exists, naming the method and what it serves. Three implementations:
 
-A further method touches its own module (a subclass of :class:`Method`), one line of
-:data:`mrcert.core.methods.METHODS` (its class, its schema, what its run keys leave out), its
-schema in :mod:`mrcert.core.method_schemas` and its YAML in ``conf/method/``; nothing in
-``mrcert/infra/`` or ``mrcert/tasks/`` names a method (``tests/test_method_plug.py``). What it
-refuses (its parameters, a motion or a task mode it cannot serve) it says in
-:meth:`Method.from_config`, which config validation calls before any run opens.
+* the two smoothing methods, on the sampling engine of :mod:`mrcert.core.sampling` (vote
+  counting, Cohen's CERTIFY and PREDICT, ABSTAIN): camera motion smoothing
+  (:class:`~mrcert.core.smoothing.CameraMotionSmoothing`, ``method=camera_motion``) and
+  pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing`, ``method=pixelwise``);
+* deterministic verification by bound propagation
+  (:class:`~mrcert.core.verification.BoundPropagation`, ``method=bound_propagation``).
+
+A further method is its own module (a subclass of :class:`Method`), one line of
+:data:`mrcert.core.methods.METHODS`, its schema in :mod:`mrcert.core.method_schemas` and its
+YAML in ``conf/method/``; nothing in ``mrcert/infra/``, ``mrcert/tasks/`` or
+``mrcert/reporting/`` names a method (``tests/test_method_plug.py``).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import torch
@@ -32,24 +35,32 @@ from mrcert.core.geometry import AXES
 from mrcert.errors import ConfigError
 
 ABSTAIN = -1
-"""The smoothed classifier's answer when it cannot decide at the requested confidence."""
+"""A certifier's or smoothed classifier's answer when it cannot decide."""
+
+SERVICES = {
+    "train": "an augmented model's training (its training-time perturbation)",
+    "smooth": "task=smooth (PREDICT, the smoothed benign accuracy)",
+    "attack": "task=attack (PREDICT at attacked poses)",
+    "sequential": "task.sequential (sequential CERTIFY)",
+}
+"""What a method may serve besides ``task=certify`` (:attr:`Method.serves`)."""
 
 Render = Callable[[torch.Tensor], torch.Tensor]
-"""What a smoothed classifier classifies: motions (B, 6) -> images (B, C, H, W), a test sample
-re-rendered under each motion (:meth:`~mrcert.data.samples.TestSample.renderer`); a method's
-:meth:`Method.views` turns it into the noisy samples it votes over."""
+"""A test sample as a certifier sees it: motions (B, 6) -> images (B, C, H, W), the sample
+re-rendered under each motion (:meth:`~mrcert.data.samples.TestSample.renderer`)."""
 
 
 @runtime_checkable
 class SceneRender(Protocol):
     """A :data:`Render` that also shows the scene it renders, for a method that reasons about
-    the cloud itself (pixel-wise smoothing bounds the images between its frames):
-    :class:`~mrcert.data.samples.SampleRenderer`."""
+    the cloud itself (bounds on the images between poses): :class:`~mrcert.data.samples.SampleRenderer`."""
 
     K: torch.Tensor
     """The camera intrinsics (3, 3)."""
     background: float
     """The colour of an empty pixel."""
+    height: int
+    width: int
     projected: int
     """The camera poses rendered so far (a certificate's rendering cost)."""
 
@@ -68,11 +79,47 @@ class Certificate:
     count_a: int
     p_a_lower: float
     n: int = 0  # estimation samples drawn (the sequential mode may stop early; several frames add up)
-    unit: str = ""  # the radius's unit (Method.view_unit for one view, Method.region_unit for a method's certify)
-    # How far a method's own condition on its views is from holding (pixel-wise smoothing: the
-    # smallest, over pieces, of the better end frame's radius less its bound; negative on the
-    # piece an interval failed on); NaN for a method that has none.
+    unit: str = ""  # the radius's unit (the view's for one view, the region's for a method's certify)
+    # How far a method's own condition is from holding (pixel-wise smoothing: the smallest, over
+    # pieces, of the better end frame's radius less its bound; bound propagation: the smallest
+    # lower bound of the logit margin over the pieces); NaN for a method that has none.
     margin: float = float("nan")
+    details: dict[str, Any] = field(default_factory=dict)
+    """The values of the method's own log columns (:attr:`Method.log_columns`)."""
+
+
+@dataclass(frozen=True)
+class CertifyRequest:
+    """What ``task=certify`` asks of a certifier (``task.*`` and ``motion.radius``); a method
+    uses what applies to it."""
+
+    n0: int
+    n: int
+    alpha: float
+    radius: float
+    sequential: bool = False
+    look: int = 50
+
+
+@dataclass
+class BaseClassifier:
+    """The trained base classifier a certifier is bound to, with how to run it."""
+
+    model: torch.nn.Module
+    num_classes: int
+    batch_size: int = 200
+    device: torch.device | str = "cpu"
+    overlap: bool = False
+    """Render the next batch while the model classifies this one (pays off on a GPU)."""
+    render_batch: int | None = None
+
+
+class Certifier(Protocol):
+    """A method bound to a base classifier (:meth:`Method.certifier`)."""
+
+    def certify_sample(self, render: Render, request: CertifyRequest, generator: torch.Generator) -> Certificate:
+        """The certificate of one test sample (its draws, if any, from ``generator``)."""
+        ...
 
 
 def single_axis(motion: DictConfig) -> str:
@@ -83,30 +130,28 @@ def single_axis(motion: DictConfig) -> str:
     return axis
 
 
-class ViewCertifier(Protocol):
-    """What a method certifies with: Cohen's CERTIFY of one view
-    (:meth:`mrcert.core.smoothing.SmoothedClassifier.certify_view`)."""
-
-    def certify_view(
-        self, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator, center=None
-    ) -> Certificate: ...
-
-
 class Method(ABC):
     """A certification method (see the module docstring). Implementations are frozen dataclasses."""
 
     axes: tuple[str, ...]
     """The motion axes it certifies against (one, or several for Theorem 1's combinations)."""
     sigmas: tuple[float, ...]
-    """Its noise scales, one per axis (motion units) or one (pixel units)."""
-    sequential: ClassVar[bool] = False
-    """Whether CERTIFY's sequential mode (``task.sequential``) applies: it certifies one view."""
+    """Its noise scales as the certify log records them, one per axis (motion units) or one
+    (pixel units); none for a method without noise."""
+    serves: ClassVar[frozenset[str]] = frozenset()
+    """What it serves besides ``task=certify``: keys of :data:`SERVICES`."""
+    log_columns: ClassVar[tuple[str, ...]] = ()
+    """Columns of its own that the certify log gets after the common ones (:attr:`Certificate.details`)."""
 
     @classmethod
     @abstractmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> Method:
         """The method the ``method`` and ``motion`` config groups describe; a value it cannot
         serve raises :class:`~mrcert.errors.ConfigError` naming the key."""
+
+    @abstractmethod
+    def certifier(self, base: BaseClassifier) -> Certifier:
+        """The method bound to the base classifier, built once per evaluation."""
 
     @property
     def axes_label(self) -> str:
@@ -117,7 +162,12 @@ class Method(ABC):
     def single(self) -> bool:
         return len(self.axes) == 1
 
-    # --- training ------------------------------------------------------------------------------
+    @property
+    def sigma_unit(self) -> str:
+        """The unit of :attr:`sigmas` (one per axis, joined by ``+``)."""
+        return ""
+
+    # --- training (a method that serves "train") -----------------------------------------------
     def training_motions(self, n: int, seed: int) -> torch.Tensor | None:
         """The motions (n, 6) an augmented model's ``n`` training images are rendered under, or
         None for the training poses themselves."""
@@ -132,38 +182,11 @@ class Method(ABC):
         """An augmented model's training batch as it trains on it (drawn from ``generator``)."""
         return images
 
-    # --- smoothing and certification -----------------------------------------------------------
-    @abstractmethod
-    def views(self, render: Render, n: int, generator: torch.Generator, center: torch.Tensor | None):
-        """The ``n`` noisy samples of the view seen after the camera motion ``center`` (None: the
-        test pose): ``(render_batch, inputs)``, where ``render_batch(inputs[s:e])`` gives the
-        images of samples ``s..e-1`` whatever the batches."""
-
-    @abstractmethod
-    def certify(
-        self, smoothed: ViewCertifier, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator
-    ) -> Certificate:
-        """CERTIFY one test sample with ``smoothed``'s base classifier; the radius is in motion units."""
-
-    @abstractmethod
-    def radius(self, p_a_lower: float) -> float:
-        """The radius of Cohen's certificate at one view for a lower bound on ``pA``, in the
-        units of the method's noise (:attr:`view_unit`)."""
-
-    @property
-    @abstractmethod
-    def view_unit(self) -> str:
-        """The unit of :meth:`radius`: Cohen's radius at one view, in the noise's space."""
-
+    # --- what a certificate means ------------------------------------------------------------
     @property
     @abstractmethod
     def region_unit(self) -> str:
-        """The unit of the radius :meth:`certify` returns: that of the region it certifies."""
-
-    @property
-    @abstractmethod
-    def sigma_unit(self) -> str:
-        """The unit of :attr:`sigmas` (one per axis, joined by ``+``)."""
+        """The unit of a certificate's radius: that of the region it certifies."""
 
     def judged_at(self, radius: float) -> float:
         """The radius a certify run's certified accuracy is reported at, for the motion's

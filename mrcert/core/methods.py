@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig
 
-from mrcert.core.method_schemas import MethodConfig, PixelwiseConfig
+from mrcert.core.method_schemas import BoundPropagationConfig, MethodConfig, PixelwiseConfig
 from mrcert.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -43,6 +43,8 @@ METHODS: dict[str, Registered] = {
     "camera_motion": Registered("mrcert.core.smoothing:CameraMotionSmoothing", MethodConfig, unkeyed=("method",)),
     # Pixel noise: one model serves every axis.
     "pixelwise": Registered("mrcert.core.pixelwise:PixelwiseSmoothing", PixelwiseConfig, unkeyed_model=("motion",)),
+    # Deterministic: it certifies a model trained for another method (model.trained_for) or vanilla.
+    "bound_propagation": Registered("mrcert.core.verification:BoundPropagation", BoundPropagationConfig),
 }
 
 FORMER_NAMES = {"motion": "camera_motion"}

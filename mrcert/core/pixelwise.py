@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import torch
 from omegaconf import DictConfig
@@ -23,9 +22,11 @@ from scipy.stats import norm
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
-from mrcert.core.method import ABSTAIN, Certificate, Method, SceneRender, single_axis
+from mrcert.core.method import ABSTAIN, Certificate, SceneRender, single_axis
+from mrcert.core.pose_bounds import piece_bounds
+from mrcert.core.sampling import SmoothedClassifier, Smoothing, image_generator
 from mrcert.core.sequential import lower_confidence_bound
-from mrcert.core.smoothing import CameraMotionSmoothing, image_generator
+from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.errors import ConfigError, MrcertError
 
 NOISE_BLOCK = 16
@@ -79,179 +80,6 @@ def frame_motions(axis: str, half_width: float, count: int) -> torch.Tensor:
     return motions
 
 
-def piece_bounds(
-    points: torch.Tensor,
-    colors: torch.Tensor,
-    K: torch.Tensor,
-    axis: str,
-    frames: torch.Tensor,
-    images: torch.Tensor,
-    background: float,
-    per_pixel: bool = False,
-    rank: torch.Tensor | None = None,
-) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """For each piece ``[alpha_k, alpha_k+1]`` of a one-axis frame sequence: upper bounds on
-    ``||O(V, alpha) - x_k||_2`` (``left``) and ``||O(V, alpha) - x_k+1||_2`` (``right``) over every
-    pose ``alpha`` of the piece.
-
-    Args:
-        points, colors: the cloud (N, 3) in the reference camera frame and its colours (N, C)
-            -- every point that can land in the image for some pose of the interval.
-        K: intrinsics; axis: the moving axis; frames: (K, 6) motions on that axis, increasing.
-        images: (K, C, H, W) the frames' renders ``x_k``; background: the value of empty pixels.
-        rank: each point's index for the projection's tie rule (default: its row).
-
-    Per pixel, the colours the pixel can take anywhere in the piece are those of the points
-    whose path can cross it, plus the background unless some point stays in it throughout;
-    a point is left out when such a staying point is always strictly nearer, or -- along a
-    translation, where two points of equal depth keep equal depths -- at most as far in the
-    reference frame and of lower rank (it then wins every tie): the left-out point cannot win.
-    Each pixel contributes its largest squared distance to the frame's pixel; with
-    ``per_pixel`` those (K - 1, H, W) maps come back too (left, right, left map, right map).
-    """
-    i = axis_index(axis)
-    amounts = frames[:, i].to(torch.float64).cpu().numpy()
-    if len(amounts) < 2 or not np.all(np.diff(amounts) > 0):
-        raise ValueError("frames must be at least 2 motions on one axis, in increasing order")
-    if not is_translation(axis) and np.diff(amounts).max() >= np.pi:
-        raise ValueError(f"a rotation piece must be narrower than pi (its arc's bound); got {np.diff(amounts).max()}")
-    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    c, height, width = images.shape[1:]
-    xyz = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).cpu().numpy())
-    table = np.ascontiguousarray(torch.as_tensor(colors).to(torch.float64).cpu().numpy())
-    frames_np = np.ascontiguousarray(images.to(torch.float64).reshape(len(amounts), c, height * width).cpu().numpy())
-    ranks = (
-        np.arange(len(xyz))
-        if rank is None
-        else np.ascontiguousarray(torch.as_tensor(rank).to(torch.int64).cpu().numpy())
-    )
-    pieces = len(amounts) - 1
-    left, right = np.empty(pieces), np.empty(pieces)
-    maps = np.empty((2, pieces if per_pixel else 0, height * width))
-    _bounds_kernel(
-        xyz, ranks, table, amounts, i if is_translation(axis) else i - 3, is_translation(axis),
-        fx, fy, cx, cy, height, width, float(background), frames_np, left, right, maps,
-    )  # fmt: skip
-    if per_pixel:
-        return left, right, maps[0].reshape(pieces, height, width), maps[1].reshape(pieces, height, width)
-    return left, right
-
-
-PIXEL_SLACK = 1e-6
-"""Pixels by which every projected extent is widened (and a 'stays in one pixel' test
-narrowed), far above float64 rounding, so the bound holds for the kernel's own arithmetic."""
-
-
-@numba.njit(cache=True, nogil=True)
-def _path_vertices(P, a0, a1, j, translation, out):  # pragma: no cover - compiled
-    """Vertices (rows of ``out``) of a convex polygon holding the point's camera coordinates for
-    every motion from ``a0`` to ``a1`` on axis ``j``; returns how many (2 or 3).
-
-    A translation ``t`` moves ``P`` to ``P - t``: the segment between the ends. A rotation
-    by ``theta`` about axis ``j`` moves it to ``R(theta)^T P``, an arc about that axis; the arc
-    (of angle ``< pi``) lies in the triangle of its ends and the meeting point of their tangents."""
-    if translation:
-        for k in range(3):
-            out[0, k] = P[k]
-            out[1, k] = P[k]
-        out[0, j] -= a0
-        out[1, j] -= a1
-        return 2
-    p, q = (j + 1) % 3, (j + 2) % 3  # R(theta)^T turns (P_p, P_q) by -theta
-    mid = 0.5 * (a0 + a1)
-    half = 0.5 * (a1 - a0)
-    for row, angle, scale in ((0, a0, 1.0), (1, a1, 1.0), (2, mid, 1.0 / np.cos(half))):
-        cs, sn = np.cos(angle), np.sin(angle)
-        out[row, j] = P[j]
-        out[row, p] = (cs * P[p] + sn * P[q]) * scale
-        out[row, q] = (-sn * P[p] + cs * P[q]) * scale
-    return 3
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _bounds_kernel(
-    P, rank, colors, amounts, j, translation, fx, fy, cx, cy, height, width, background, frames, left, right, maps
-):  # pragma: no cover - compiled
-    n, nc = P.shape[0], colors.shape[1]
-    hw = height * width
-    for k in numba.prange(len(amounts) - 1):
-        a0, a1 = amounts[k], amounts[k + 1]
-        box = np.zeros((n, 4), np.int64)  # u0, u1, v0, v1; u0 > u1: cannot land
-        zlow = np.empty(n)
-        cover = np.full(hw, np.inf)  # the largest depth of a point that stays in the pixel, minimised
-        tie_z = np.full(hw, np.inf)  # translations: the staying point of least (reference depth, rank)
-        tie_rank = np.zeros(hw, np.int64)
-        verts = np.empty((3, 3))
-        for i in range(n):
-            m = _path_vertices(P[i], a0, a1, j, translation, verts)
-            zmin, zmax = np.inf, -np.inf
-            umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
-            for r in range(m):
-                z = verts[r, 2]
-                zmin, zmax = min(zmin, z), max(zmax, z)
-                if z > 0.0:
-                    u = fx * (verts[r, 0] / z) + cx
-                    v = fy * (verts[r, 1] / z) + cy
-                    umin, umax, vmin, vmax = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v)
-            zlow[i] = zmin - 1e-9 * abs(zmin)
-            if zmax <= 0.0:  # behind the camera throughout
-                box[i, 0], box[i, 1] = 1, 0
-                continue
-            if zmin <= 1e-9 * zmax:  # may cross the camera plane: anywhere in the image
-                box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 0, width - 1, 0, height - 1
-                zlow[i] = -np.inf
-                continue
-            lo_u, hi_u = np.floor(umin - PIXEL_SLACK), np.floor(umax + PIXEL_SLACK)
-            lo_v, hi_v = np.floor(vmin - PIXEL_SLACK), np.floor(vmax + PIXEL_SLACK)
-            if hi_u < 0 or lo_u >= width or hi_v < 0 or lo_v >= height:
-                box[i, 0], box[i, 1] = 1, 0
-                continue
-            box[i, 0], box[i, 1] = int(max(lo_u, 0.0)), int(min(hi_u, width - 1.0))
-            box[i, 2], box[i, 3] = int(max(lo_v, 0.0)), int(min(hi_v, height - 1.0))
-            if lo_u == hi_u and lo_v == hi_v:  # stays in this pixel for the whole piece
-                p = int(lo_v) * width + int(lo_u)
-                cover[p] = min(cover[p], zmax + 1e-9 * abs(zmax))
-                if P[i, 2] < tie_z[p] or (P[i, 2] == tie_z[p] and rank[i] < tie_rank[p]):
-                    tie_z[p], tie_rank[p] = P[i, 2], rank[i]
-        worst_l = np.zeros(hw)
-        worst_r = np.zeros(hw)
-        for i in range(n):
-            if box[i, 0] > box[i, 1]:
-                continue
-            for v in range(box[i, 2], box[i, 3] + 1):
-                for u in range(box[i, 0], box[i, 1] + 1):
-                    p = v * width + u
-                    if zlow[i] > cover[p]:  # a point staying here is always nearer
-                        continue
-                    # Along a translation every depth is its reference depth less the same amount
-                    # (exactly 0 or t on the axis), so order and ties are kept: no deeper or tied
-                    # point of higher rank ever beats the staying point.
-                    if translation and P[i, 2] >= tie_z[p] and rank[i] > tie_rank[p]:
-                        continue
-                    dl, dr = 0.0, 0.0
-                    for ch in range(nc):
-                        dl += (colors[i, ch] - frames[k, ch, p]) ** 2
-                        dr += (colors[i, ch] - frames[k + 1, ch, p]) ** 2
-                    worst_l[p] = max(worst_l[p], dl)
-                    worst_r[p] = max(worst_r[p], dr)
-        total_l, total_r = 0.0, 0.0
-        for p in range(hw):
-            if cover[p] == np.inf:  # may be empty somewhere in the piece
-                dl, dr = 0.0, 0.0
-                for ch in range(nc):
-                    dl += (background - frames[k, ch, p]) ** 2
-                    dr += (background - frames[k + 1, ch, p]) ** 2
-                worst_l[p] = max(worst_l[p], dl)
-                worst_r[p] = max(worst_r[p], dr)
-            total_l += worst_l[p]
-            total_r += worst_r[p]
-        left[k] = np.sqrt(total_l) * (1.0 + 1e-9)
-        right[k] = np.sqrt(total_r) * (1.0 + 1e-9)
-        if maps.shape[1]:
-            maps[0, k] = worst_l
-            maps[1, k] = worst_r
-
-
 def interval_certified(classes: np.ndarray, radii: np.ndarray, left: np.ndarray, right: np.ndarray) -> bool:
     """Whether the frames' certificates cover the whole interval: one class at every frame (no
     abstention) and, in every piece, an end frame whose certified radius exceeds its bound."""
@@ -276,7 +104,7 @@ def piece_margin(radii, left: np.ndarray, right: np.ndarray, reach: float) -> fl
 
 
 @dataclass(frozen=True)
-class PixelwiseSmoothing(Method):
+class PixelwiseSmoothing(Smoothing):
     """Pixel-wise smoothing (``method=pixelwise``): Gaussian pixel noise of ``sigma`` trains the
     augmented model and smooths it at ``frames`` frames of ``[-half_width, half_width]`` on
     ``axis``; a test sample is certified for the whole interval or not at all (its radius is
@@ -336,6 +164,10 @@ class PixelwiseSmoothing(Method):
     def radius(self, p_a_lower: float) -> float:
         return self.sigma * float(norm.ppf(p_a_lower))
 
+    def probability_for(self, radius: float) -> float:
+        """The ``pA`` lower bound a frame needs for an image radius ``radius`` (intensity)."""
+        return float(norm.cdf(radius / self.sigma))
+
     @property
     def view_unit(self) -> str:
         """A frame's radius: the l2 norm of a change of the [0, 1] image."""
@@ -369,7 +201,9 @@ class PixelwiseSmoothing(Method):
         ``alpha / frames``. A piece whose bounds both reach it can never be covered."""
         return self.radius(lower_confidence_bound(n, n, alpha / self.frames))
 
-    def certify(self, smoothed, render, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
+    def certify_smoothed(
+        self, smoothed: SmoothedClassifier, render, n0: int, n: int, alpha: float, generator: torch.Generator
+    ) -> Certificate:
         """The frames certified in order at ``alpha / frames`` each, stopping at the first after
         which the interval can no longer be certified (:func:`interval_coverable`: the bounds are
         computed first, so an interval no frame's radius can cover stops after its first frame);

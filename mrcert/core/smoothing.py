@@ -8,31 +8,22 @@ components (one axis, or translations plus a rotation about one fixed axis).
 
 from __future__ import annotations
 
-import hashlib
-import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
-from scipy.stats import binomtest, norm
+from scipy.stats import norm
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, compose, is_translation, unit
-from mrcert.core.method import ABSTAIN, Certificate, Method, Render, single_axis
-from mrcert.core.models import predicted
-from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
+from mrcert.core.method import Certificate, Render, single_axis
+from mrcert.core.sampling import SmoothedClassifier, Smoothing
 from mrcert.errors import ConfigError, MrcertError
-
-DECISIONS = ("predict", "vote")
-"""How a smoothed prediction is decided from its votes (:meth:`SmoothedClassifier.decide`)."""
 
 
 @dataclass(frozen=True)
-class CameraMotionSmoothing(Method):
+class CameraMotionSmoothing(Smoothing):
     """Camera motion smoothing (``method=camera_motion``): a zero-mean Gaussian over some motion
     components, one sigma each, that augments the training images and smooths the classifier."""
 
@@ -48,7 +39,7 @@ class CameraMotionSmoothing(Method):
                 raise MrcertError(f"smoothing sigma for {a} must be > 0, got {s}")
         licensed(self.axes, self.sigmas)
 
-    sequential = True
+    serves = frozenset({"train", "smooth", "attack", "sequential"})
 
     @classmethod
     def from_config(cls, method: DictConfig | None, motion: DictConfig) -> CameraMotionSmoothing:
@@ -124,7 +115,7 @@ class CameraMotionSmoothing(Method):
                 motions = compose(center.expand(n, 6), motions)
         return render, motions
 
-    def certify(self, smoothed, render, n0, n, alpha, generator) -> Certificate:
+    def certify_smoothed(self, smoothed: SmoothedClassifier, render, n0, n, alpha, generator) -> Certificate:
         """Cohen's CERTIFY at the test pose: the radius is the motion's (:meth:`radius`)."""
         return smoothed.certify_view(render, n0, n, alpha, generator)
 
@@ -183,177 +174,3 @@ def licensed(axes: tuple[str, ...], sigmas: tuple[float, ...]) -> None:
         f"be smoothed with equal sigma, or neither (allowed e.g. {pair[0]}+{pair[1]}+{rotations[0]} with "
         f"sigma_{pair[0][1]} = sigma_{pair[1][1]}, or {rotations[0]} with translations along {rotations[0][1]} only)"
     )
-
-
-def image_generator(seed: int, index: int, *stream) -> torch.Generator:
-    """The generator for test image ``index`` (and an optional sub-stream such as an attack
-    motion): a function of these values only, so results do not depend on batch size, device
-    or sharding."""
-    digest = hashlib.sha256("/".join(map(str, ("mrcert", seed, index, *stream))).encode()).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
-
-
-class VoteCounter:
-    """The base classifier's votes over the images of a :data:`Render`, in batches.
-
-    The model classifies ``batch_size`` images at once; the render draws ``render_batch`` at
-    once (a multiple of ``batch_size``, default ``batch_size``), since each call to a render
-    costs a fixed amount besides its images (:func:`~mrcert.infra.runtime.render_batch`).
-    With ``overlap``, a worker thread renders the next ``render_batch`` inputs while the model
-    classifies the current ones (the projection kernel and torch both release the GIL).
-    ``timings`` adds up the seconds spent waiting for renders and in the model (for benchmarks).
-    The votes do not depend on either size: each image is its input's, whatever it is drawn with.
-    """
-
-    def __init__(
-        self,
-        base: torch.nn.Module,
-        num_classes: int,
-        batch_size: int = 200,
-        device="cpu",
-        overlap=False,
-        render_batch: int | None = None,
-    ):
-        render_batch = batch_size if render_batch is None else render_batch
-        if render_batch < batch_size or render_batch % batch_size:
-            raise ValueError(f"render_batch={render_batch} must be a multiple of batch_size={batch_size}")
-        self.base, self.num_classes, self.batch_size, self.render_batch = base, num_classes, batch_size, render_batch
-        self.device, self.overlap = device, overlap
-        self.timings = {"render": 0.0, "model": 0.0}
-
-    @torch.inference_mode()
-    def __call__(self, render: Callable[[torch.Tensor], torch.Tensor], inputs: torch.Tensor) -> np.ndarray:
-        """Votes over ``render(inputs)``, in batches (``inputs``: motions, or sample indices)."""
-        parts = [inputs[s : s + self.render_batch] for s in range(0, len(inputs), self.render_batch)]
-        votes = np.zeros(self.num_classes, np.int64)
-        with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
-            pending = pool.submit(render, parts[0]) if pool and parts else None
-            for k, part in enumerate(parts):
-                start = time.perf_counter()
-                if pool:
-                    images = pending.result()
-                    if k + 1 < len(parts):
-                        pending = pool.submit(render, parts[k + 1])
-                else:
-                    images = render(part)
-                rendered = time.perf_counter()
-                for s in range(0, len(images), self.batch_size):
-                    batch = images[s : s + self.batch_size].to(self.device, non_blocking=True)
-                    classes = predicted(self.base(batch)).cpu().numpy()
-                    votes += np.bincount(classes[classes >= 0], minlength=self.num_classes)
-                self.timings["render"] += rendered - start
-                self.timings["model"] += time.perf_counter() - rendered
-        return votes
-
-
-class SmoothedClassifier:
-    """g(x) = argmax_c P(h(O(V, a o eps)) = c), eps ~ the smoothing distribution (for camera
-    motion smoothing; another :class:`~mrcert.core.method.Method` draws other noisy views).
-
-    Built once from the base classifier ``h``, the method and the number of classes;
-    :meth:`certify` and :meth:`predict` take the input: a :data:`Render` of the test sample's
-    scene ``V``, and ``a`` is the motion it is looked at from (zero for the test pose).
-    Guarantee (Cohen et al. 2019; Theorem 1 of the paper, for the combinations
-    :func:`licensed` admits): if :meth:`certify` returns class ``c`` with radius ``R``, then with
-    probability at least ``1 - alpha`` over its sampling, ``g(phi(x, delta)) = c`` for every
-    camera motion ``delta`` on the smoothed components inside the region of
-    :meth:`CameraMotionSmoothing.region` (``|delta| < R`` on one axis). :meth:`predict` returns
-    ``g(x)`` or :data:`ABSTAIN`, and is wrong with probability at most ``alpha``.
-    """
-
-    def __init__(
-        self,
-        base: torch.nn.Module,
-        method: Method,
-        num_classes: int,
-        batch_size: int = 200,
-        device: torch.device | str = "cpu",
-        overlap: bool = False,
-        render_batch: int | None = None,
-    ):
-        self.method = method
-        self.votes = VoteCounter(base, num_classes, batch_size, device, overlap, render_batch)
-
-    def sample_counts(
-        self, render: Render, n: int, generator: torch.Generator, center: torch.Tensor | None = None
-    ) -> np.ndarray:
-        """Votes over the method's ``n`` noisy views after the camera motion ``center``."""
-        return self.votes(*self.method.views(render, n, generator, center))
-
-    def predict(
-        self,
-        render: Render,
-        n: int,
-        alpha: float,
-        generator: torch.Generator,
-        center: torch.Tensor | None = None,
-        rule: str = "predict",
-    ) -> int:
-        """The smoothed prediction at the pose moved by ``center`` (default: the test pose itself),
-        by ``rule`` (:meth:`decide`)."""
-        return self.decide(self.sample_counts(render, n, generator, center), alpha, rule)
-
-    @staticmethod
-    def decide(counts: np.ndarray, alpha: float, rule: str = "predict") -> int:
-        """``predict`` (Cohen's PREDICT): the top class, or ABSTAIN unless the two-sided binomial
-        test of the top two counts rejects equality at level ``alpha``. ``vote`` (the paper's
-        robot experiment): the most frequent class, ties to the lowest class index; it never
-        abstains and carries no guarantee (``alpha`` unused)."""
-        if rule == "vote":
-            return int(np.argmax(counts))
-        if rule != "predict":
-            raise ValueError(f"decision rule {rule!r} is not one of {DECISIONS}")
-        top2 = np.argsort(counts, kind="stable")[::-1][:2]
-        n_a, n_b = int(counts[top2[0]]), int(counts[top2[1]])
-        if n_a + n_b == 0 or binomtest(n_a, n_a + n_b, 0.5).pvalue > alpha:
-            return ABSTAIN
-        return int(top2[0])
-
-    def certify(self, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator) -> Certificate:
-        """The method's CERTIFY of the test sample (for motion smoothing :meth:`certify_view`)."""
-        return self.method.certify(self, render, n0, n, alpha, generator)
-
-    def certify_view(
-        self, render: Render, n0: int, n: int, alpha: float, generator: torch.Generator, center=None
-    ) -> Certificate:
-        """Cohen's CERTIFY of the view after the camera motion ``center``: select the top class
-        on ``n0`` samples, estimate its probability on ``n`` fresh samples, and certify
-        ``method.radius(pA_lower)`` when ``pA_lower >= 1/2``."""
-        selection = self.sample_counts(render, n0, generator, center)
-        c_a = int(np.argmax(selection))
-        count_a = int(self.sample_counts(render, n, generator, center)[c_a])
-        p_a = lower_confidence_bound(count_a, n, alpha)
-        return self._certificate(c_a, count_a, n, p_a)
-
-    def _certificate(self, c_a: int, count_a: int, n: int, p_a: float) -> Certificate:
-        view_unit = self.method.view_unit
-        if p_a < 0.5:
-            return Certificate(ABSTAIN, 0.0, count_a, p_a, n, view_unit)
-        return Certificate(c_a, self.method.radius(p_a), count_a, p_a, n, view_unit)
-
-    def certify_sequential(
-        self, render: Render, n0: int, n: int, alpha: float, radius: float, first_look: int, generator: torch.Generator
-    ) -> Certificate:
-        """CERTIFY with early stopping, for a requested ``radius``, never less powerful than
-        :meth:`certify` with ``n`` samples.
-
-        After ``n0`` selection samples, estimation samples are drawn up to the looks of the
-        :class:`~mrcert.core.sequential.SequentialDesign` planned for ``n``, ``alpha`` and the
-        probability the radius needs (looks at ``first_look``, doubling, and a last look at
-        ``n_max >= n``); it stops at the first look whose count certifies ``radius`` or shows
-        that it cannot be reached, and reports ``radius(pA_lower)`` with that look's bound.
-        With probability at least ``1 - alpha`` every look's bound holds, so the certificate
-        is valid at the data-dependent stop. Looks are fixed in number of samples, so the
-        result does not depend on the batch size.
-        """
-        need = max(self.method.probability_for(radius), 0.5)
-        design = SequentialDesign.plan(n, alpha, need, first_look)
-        c_a = int(np.argmax(self.sample_counts(render, n0, generator)))
-        count_a, drawn = 0, 0
-        for k, look in enumerate(design.looks):
-            count_a += int(self.sample_counts(render, look - drawn, generator)[c_a])
-            drawn = look
-            stop, p_a = design.decide(count_a, k)
-            if stop:
-                break
-        return self._certificate(c_a, count_a, drawn, p_a)

@@ -219,5 +219,13 @@ class SampleRenderer:
     def background(self) -> float:
         return self.sample.background
 
+    @property
+    def height(self) -> int:
+        return self.sample.height
+
+    @property
+    def width(self) -> int:
+        return self.sample.width
+
     def cloud_for(self, motions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return self.sample.cloud_for(motions)

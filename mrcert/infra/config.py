@@ -283,14 +283,24 @@ def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
 def _method(cfg: DictConfig, data: dict) -> None:
     """The method is one mrcert has, it accepts its parameters and the motion, and it does what
     the task asks of it (built here once, so that a refusal comes before any run opens)."""
+    from mrcert.core.method import SERVICES
     from mrcert.core.methods import build_method
 
     if "method" not in data or "motion" not in data:
         return
     method = build_method(cfg)
-    name = data["method"]["name"]
-    if data.get("task", {}).get("sequential") and not method.sequential:
-        raise ConfigError("task.sequential", True, f"false with method={name} (sequential CERTIFY certifies one view)")
+    task = data.get("task", {})
+    name, asked = data["method"]["name"], None
+    if task.get("name") in ("smooth", "attack") and (task.get("name") != "attack" or task.get("smoothed")):
+        asked = ("task", task["name"], task["name"])
+    elif task.get("name") == "train" and data.get("model", {}).get("variant") != "vanilla":
+        asked = ("model.variant", data["model"]["variant"], "train")
+    elif task.get("name") == "certify" and task.get("sequential"):
+        asked = ("task.sequential", True, "sequential")
+    if asked and asked[2] not in method.serves:
+        key, value, service = asked
+        served = "; ".join(["task=certify", *(SERVICES[s] for s in sorted(method.serves))])
+        raise ConfigError(key, value, f"something method={name} serves: {served}")
 
 
 def trained_for(data: dict) -> dict | None:

@@ -111,6 +111,26 @@ class Gather:
 
 
 @dataclass
+class Export(EvaluationTask):
+    pieces: int = MISSING
+    timeout: float = MISSING
+
+
+@dataclass
+class Verify:
+    name: str = MISSING
+    onnx: str | None = None
+    vnnlib: str | None = None
+    instances: str | None = None
+    filter: str | None = None
+    timeout: float | None = None
+    relaxation: str = MISSING
+    max_boxes: int = MISSING
+    result: str | None = None
+    page: str | None = None
+
+
+@dataclass
 class Viewpoints:
     name: str = MISSING
     pitches: list[float] = MISSING
@@ -270,6 +290,8 @@ SCHEMAS: dict[str, dict[str, type]] = {
         "import": Import,
         "gather": Gather,
         "viewpoints": Viewpoints,
+        "verify": Verify,
+        "export": Export,
     },
     "data": {"scene": Scene, "synthetic": Synthetic, "released": Released, "custom": Custom, "camera": Camera},
     "motion": {"single": Motion, "multi": MultiAxisMotion},

@@ -158,6 +158,35 @@ TASKS: dict[str, Task] = {
         headline=("smoothed_robust_accuracy", "base_benign_accuracy"),
         title=_model_title,
     ),
+    "verify": Task(
+        "verify VNN-LIB properties of ONNX classifiers (unsat, sat, unknown, timeout)",
+        # Its files name further files (an instances list): never reused by key.
+        Identity(
+            defines=("task",),
+            ignores=(*HELPER_IGNORES, "task.page", "task.result"),  # where it also writes its answers
+            files=("task.onnx", "task.vnnlib", "task.instances"),
+        ),
+        reusable=False,
+        log="verify.tsv",
+        columns=(
+            "idx",
+            "onnx",
+            "vnnlib",
+            "result",
+            "margin",
+            "boxes",
+            "forward_passes",
+            "seconds",
+            "timeout",
+        ),  # fmt: skip
+        headline=("verified", "falsified", "seconds_total"),
+        title=lambda cfg: f"verify {cfg.task.instances or cfg.task.vnnlib}",
+    ),
+    "export": Task(
+        "write test images' pose intervals as ONNX + VNN-LIB verification instances",
+        EVALUATION,
+        title=_model_title,
+    ),
     "viewpoints": Task(
         "a base classifier's accuracy by camera pitch and roll (synthetic scenes)",
         # The base classifier alone, identified by its checkpoint's content: no smoothing, no motion.

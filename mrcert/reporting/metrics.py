@@ -7,8 +7,8 @@ from __future__ import annotations
 import pandas as pd
 from omegaconf import DictConfig
 
+from mrcert.core.method import ABSTAIN
 from mrcert.core.methods import build_method
-from mrcert.core.smoothing import ABSTAIN
 from mrcert.reporting import certify_log
 
 
@@ -53,7 +53,20 @@ def attack(df: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-SUMMARIES = {"certify": certify, "import": imported, "smooth": smooth, "attack": attack}
+def verify(df: pd.DataFrame, cfg: DictConfig) -> dict[str, float]:
+    """How many instances each answer got, and the seconds they took."""
+    counts = {r: float((df["result"] == r).sum()) for r in ("unsat", "sat", "unknown", "timeout")}
+    return {
+        "verified": counts["unsat"],
+        "falsified": counts["sat"],
+        "unknown": counts["unknown"],
+        "timeout": counts["timeout"],
+        "instances": float(len(df)),
+        "seconds_total": float(df["seconds"].sum()),
+    }
+
+
+SUMMARIES = {"certify": certify, "import": imported, "smooth": smooth, "attack": attack, "verify": verify}
 """Each task that writes a per-image log (:data:`mrcert.infra.tasks.TASKS`), and its headline metrics."""
 
 

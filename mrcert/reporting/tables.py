@@ -22,7 +22,6 @@ import numpy as np
 import pandas as pd
 
 from mrcert.core.geometry import unit
-from mrcert.core.methods import build_method
 from mrcert.reporting import certify_log, paper_results
 from mrcert.reporting.cells import Cell
 from mrcert.reporting.experiment_cells import ExperimentCells, Measure
@@ -365,7 +364,7 @@ def curves(src: ExperimentCells) -> tuple[dict[str, dict[str, Curve]], dict[str,
             label = model_label(str(cell.cfg.model.arch), str(cell.cfg.model.variant))
             axis = str(cell.cfg.motion.axis)
             out.setdefault(axis, {})[label] = certify_log.curve(log)
-            units[axis] = build_method(cell.cfg).region_unit
+            units[axis] = str(log["radius_unit"].iloc[0]) if "radius_unit" in log and len(log) else unit(axis)
     return out, units
 
 

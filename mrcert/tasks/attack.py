@@ -18,8 +18,9 @@ import torch
 from omegaconf import DictConfig
 
 from mrcert.core.geometry import axis_index, unit
+from mrcert.core.method import ABSTAIN
 from mrcert.core.models import predicted
-from mrcert.core.smoothing import ABSTAIN, image_generator
+from mrcert.core.sampling import image_generator
 from mrcert.errors import MrcertError
 from mrcert.infra.tracking import RunContext
 from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize

@@ -11,7 +11,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert.core.smoothing import image_generator
+from mrcert.core.method import CertifyRequest
+from mrcert.core.sampling import image_generator
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting import certify_log
 from mrcert.reporting.plots import curve_figure, save
@@ -38,17 +39,15 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     ev = prepare(cfg)
     dist = ev.method
-    log = result_log(ctx, "certify")
+    log = result_log(ctx, "certify", dist.log_columns)
+    request = CertifyRequest(
+        int(t.n0), int(t.n), float(t.alpha), float(cfg.motion.radius), bool(t.sequential), int(t.look)
+    )
 
     def certify_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
-        render, generator = ev.render(sample), image_generator(cfg.seed, i)
-        if t.sequential:
-            cert = ev.smoothed.certify_sequential(
-                render, int(t.n0), int(t.n), float(t.alpha), float(cfg.motion.radius), int(t.look), generator
-            )
-        else:
-            cert = ev.smoothed.certify(render, int(t.n0), int(t.n), float(t.alpha), generator)
+        render = ev.render(sample)
+        cert = ev.certifier.certify_sample(render, request, image_generator(cfg.seed, i))
         return {
             "label": sample.label,
             "predict": cert.prediction,
@@ -64,10 +63,10 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "axis": dist.axes_label,
             "radius_unit": cert.unit,
             "sigma_unit": dist.sigma_unit,
-        }
+        } | cert.details
 
     run_per_image(log, ev, certify_one, f"certify {dist.axes_label}")
-    title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, smoothing {dist.axes_label}"
+    title = f"{cfg.data.name} {cfg.model.arch} {cfg.model.variant}, {cfg.method.name} {dist.axes_label}"
     report(
         certify_log.read_log(log.path),
         dist.judged_at(float(cfg.motion.radius)),

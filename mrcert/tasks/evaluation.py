@@ -1,5 +1,5 @@
 """What ``certify``, ``smooth`` and ``attack`` share: the test images a job handles, the
-trained classifier, the certification method, and a resumable per-image loop."""
+trained classifier, the certification method bound to it, and a resumable per-image loop."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.method import Method
+from mrcert.core.method import BaseClassifier, Certifier, Method, Render
 from mrcert.core.methods import build_method
-from mrcert.core.smoothing import Render, SmoothedClassifier
+from mrcert.core.sampling import SmoothedClassifier
 from mrcert.data.datasets import DataBundle, SampleSet
 from mrcert.data.samples import TestSample
 from mrcert.data.sources import load
@@ -38,19 +38,24 @@ def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards
 
 @dataclass
 class Evaluation:
-    """A job's test images, its trained base classifier, and the smoothed classifier built on it."""
+    """A job's test images, its trained base classifier, and the method's certifier bound to it."""
 
     bundle: DataBundle
     samples: SampleSet
     model: torch.nn.Module
-    smoothed: SmoothedClassifier
+    method: Method
+    certifier: Certifier
     indices: list[int]
     device: torch.device
     backend: str
 
     @property
-    def method(self) -> Method:
-        return self.smoothed.method
+    def smoothed(self) -> SmoothedClassifier:
+        """The certifier as ``smooth`` and ``attack`` use it: a smoothed classifier (config
+        validation refuses those tasks for a method that does not serve them)."""
+        if not isinstance(self.certifier, SmoothedClassifier):
+            raise MrcertError(f"method={type(self.method).__name__} has no smoothed classifier")
+        return self.certifier
 
     def render(self, sample: TestSample) -> Render:
         """The sample's renderer, on the device of the model unless the numba back end (a CPU
@@ -72,14 +77,15 @@ def prepare(cfg: DictConfig) -> Evaluation:
     overlap = device.type == "cuda"  # rendering beside the model pays off when it runs on a GPU
     batch = batch_size(t.batch_size, device)
     renders = render_batch(batch, bundle.height, bundle.width)
-    smoothed = SmoothedClassifier(model, method, len(bundle.classes), batch, device, overlap, renders)
-    return Evaluation(bundle, samples, model, smoothed, indices, device, str(t.get("backend", "auto")))
+    certifier = method.certifier(BaseClassifier(model, len(bundle.classes), batch, device, overlap, renders))
+    return Evaluation(bundle, samples, model, method, certifier, indices, device, str(t.get("backend", "auto")))
 
 
-def result_log(ctx: RunContext, task: str) -> ResultLog:
-    """The per-image log of ``task`` (its name and columns from the task table) in the run's
-    folder, owned by this run (rows of any other run found there are set aside, never adopted)."""
-    return ResultLog(ctx.output_dir / TASKS[task].log, list(TASKS[task].columns), owner=ctx.tracker.owner)
+def result_log(ctx: RunContext, task: str, extra: tuple[str, ...] = ()) -> ResultLog:
+    """The per-image log of ``task`` (its name and columns from the task table, then ``extra``:
+    a method's own columns) in the run's folder, owned by this run (rows of any other run found
+    there are set aside, never adopted)."""
+    return ResultLog(ctx.output_dir / TASKS[task].log, [*TASKS[task].columns, *extra], owner=ctx.tracker.owner)
 
 
 def summarize(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[str, float]:

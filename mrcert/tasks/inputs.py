@@ -48,12 +48,19 @@ def _store(path: Path) -> None:
     other_store(str(path))
 
 
+def _onnx(path: Path) -> None:
+    from mrcert.formats.onnx_model import read_onnx
+
+    read_onnx(path)
+
+
 CHECKS: dict[str, Callable[[Path], None]] = {
     "model.checkpoint": _checkpoint,
     "data.path": _cloud,  # a cloud file; the released MetaRoom is a folder, checked when opened
     "data.poses": _poses,
     "task.path": _log,
     "task.store": _store,  # task=gather's other store
+    "task.onnx": _onnx,  # task=verify's classifier
 }
 
 
@@ -72,6 +79,10 @@ def check_inputs(cfg: DictConfig, identity: Identity) -> None:
     input of ``cfg`` that is missing or unreadable (``runs:/`` URIs are checked against the
     store when bound)."""
     check_classes(cfg.data)
+    if OmegaConf.select(cfg, "task.name") == "verify":  # its instances, every file they name
+        from mrcert.tasks.verify import instances
+
+        instances(cfg.task)
     for key in identity.files:
         value = OmegaConf.select(cfg, key, default=None)
         if value is None or value == "???" or ":/" in str(value):

@@ -6,7 +6,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert.core.smoothing import image_generator
+from mrcert.core.sampling import image_generator
 from mrcert.infra.tracking import RunContext
 from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize
 

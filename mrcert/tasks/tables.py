@@ -12,7 +12,7 @@ import torch
 from omegaconf import DictConfig
 
 from mrcert.core.methods import build_method
-from mrcert.core.smoothing import image_generator
+from mrcert.core.sampling import image_generator
 from mrcert.data.protocols import differences
 from mrcert.data.sources import load
 from mrcert.data.synthetic import SyntheticData

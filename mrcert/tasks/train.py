@@ -32,7 +32,7 @@ from torch import nn
 from mrcert.core.method import Method
 from mrcert.core.methods import build_method
 from mrcert.core.models import build_model, non_finite, predicted
-from mrcert.core.smoothing import image_generator
+from mrcert.core.sampling import image_generator
 from mrcert.data.datasets import ImageSet
 from mrcert.data.holdout import validation_split
 from mrcert.data.sources import load

@@ -1,0 +1,447 @@
+"""Bound propagation through a classifier: from a box of inputs (a lowest and a highest value
+per pixel and channel) to sound bounds on its logits and on their differences.
+
+:class:`BoundNetwork` reads the classifier's graph with ``torch.fx`` (our small CNN, ResNet-18
+and ResNet-50 as torchvision builds them, the networks :mod:`mrcert.formats.onnx_model` reads)
+into layers of four kinds: affine maps of one input (convolution, linear, batch norm in
+evaluation mode, average pooling, flattening, reshaping, adding or scaling by a constant), the
+sum of two inputs (residual additions), ReLU and max pooling. It bounds them in float64:
+
+* **interval bounds** (IBP) pass ``[lo, up]`` layer by layer: an affine map sends the centre
+  through the map and the radius through its absolute value; ReLU and max pooling are monotone;
+* **a backward linear relaxation** (CROWN, Zhang et al. 2018) bounds a linear function of a
+  layer -- here the margins ``y_c - y_j`` -- as a linear function of the input box, passing its
+  coefficients backwards: through an affine map by its transpose, through ReLU by the two lines
+  between its pre-activation bounds (upper: the chord; lower: slope 1 when ``up > -lo``, else 0),
+  through max pooling by ``max >= x_j*`` (the input of largest lower bound) and ``max <= max up``
+  (or ``= x_j*`` when that input's lower bound beats every other's upper bound). The same
+  backward pass tightens the pre-activation bounds of the ReLU layers small enough to afford it
+  (``crown_neurons``); the others keep their interval bounds.
+
+Every bound holds for every input of the box for the network in exact arithmetic; it is
+computed in float64, whose rounding is many orders below the margins it decides on.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import operator
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+import torch.fx as fx
+import torch.nn.functional as F
+from torch import nn
+
+from mrcert.errors import MrcertError
+
+LAMBDA_BUDGET = 2.5e7
+"""The most coefficients (float64) one backward pass that tightens a layer's bounds may hold."""
+
+
+@dataclass
+class Layer:
+    kind: str  # "input", "affine", "add", "relu", "maxpool"
+    inputs: tuple[int, ...] = ()
+    fn: Callable | None = None  # affine: x -> A x + b, batch-polymorphic
+    magnitude: Callable | None = None  # affine: r -> |A| r
+    pool: tuple[int, int, int] = (0, 0, 0)  # maxpool: kernel, stride, padding
+    name: str = ""
+
+
+def _with_weight(target, weight, rest, kwargs, x):
+    """``target(x, weight, None, *rest, **kwargs)``: a convolution or linear map without its bias."""
+    return target(x, weight, None, *rest, **kwargs)
+
+
+def _scaled(scale, shift, x):
+    return x * scale + shift
+
+
+def _pair(value, name: str) -> int:
+    values = value if isinstance(value, (tuple, list)) else (value, value)
+    if len(set(values)) != 1:
+        raise MrcertError(f"bound propagation needs square {name}s, got {tuple(values)}")
+    return int(values[0])
+
+
+def _unsupported(node: fx.Node, what: str) -> MrcertError:
+    return MrcertError(f"bound propagation does not support {what} (layer {node.name})")
+
+
+RELU_FUNCTIONS = (torch.relu, F.relu)
+SUMS = (operator.add, operator.iadd, torch.add)
+SHIFTS = (*SUMS, operator.sub, operator.isub, torch.sub, operator.neg, torch.neg)
+SCALES = (operator.mul, operator.imul, torch.mul)
+DIVISIONS = (operator.truediv, operator.itruediv, torch.div)
+POSITIVE = (torch.flatten, F.avg_pool2d, F.adaptive_avg_pool2d, torch.reshape)
+POSITIVE_METHODS = ("flatten", "view", "reshape", "mean")
+POSITIVE_MODULES = (nn.AvgPool2d, nn.AdaptiveAvgPool2d, nn.Flatten, nn.Identity, nn.Dropout)
+
+
+class BoundNetwork:
+    """A classifier as layers that bounds pass through (module docstring); built once per
+    model, on the model's device, in float64."""
+
+    def __init__(self, model: nn.Module, crown_neurons: int = 2048):
+        with torch.inference_mode(False):  # its weights take part in the backward pass
+            model = copy.deepcopy(model).to(torch.float64, memory_format=torch.contiguous_format).eval()
+            for p in model.parameters():
+                p.requires_grad_(False)
+            try:
+                self.traced = fx.symbolic_trace(model)
+            except Exception as exc:  # noqa: BLE001 - control flow that depends on values, say
+                raise MrcertError(f"bound propagation cannot read the model's graph: {exc}") from None
+            self.crown_neurons = int(crown_neurons)
+            self.layers: list[Layer] = []
+            self.output = -1
+            self._build()
+
+    # --- reading the graph ---------------------------------------------------------------------
+    def _build(self) -> None:
+        index: dict[fx.Node, int] = {}
+        consts: dict[fx.Node, object] = {}
+        for node in self.traced.graph.nodes:
+            if node.op == "placeholder":
+                if any(layer.kind == "input" for layer in self.layers):
+                    raise _unsupported(node, "a second input")
+                index[node] = self._add(Layer("input", name=node.name))
+            elif node.op == "get_attr":
+                consts[node] = self._attr(str(node.target))
+            elif node.op == "output":
+                out = node.args[0]
+                if not isinstance(out, fx.Node) or out not in index:
+                    raise _unsupported(node, "an output that is not one tensor of the graph")
+                self.output = index[out]
+            else:
+                bounded = [a for a in node.all_input_nodes if a in index]
+                if not bounded:  # a constant computed from constants
+                    args = fx.node.map_arg(node.args, lambda a: consts[a])
+                    kwargs = fx.node.map_arg(node.kwargs, lambda a: consts[a])
+                    consts[node] = self._call(node, args, kwargs)
+                    continue
+                index[node] = self._add(self._layer(node, bounded, index, consts))
+        if self.output < 0:
+            raise MrcertError("bound propagation found no output in the model's graph")
+
+    def _attr(self, target: str):
+        obj = self.traced
+        for part in target.split("."):
+            obj = getattr(obj, part)
+        return obj
+
+    def _call(self, node: fx.Node, args, kwargs):
+        if node.op == "call_module":
+            return self.traced.get_submodule(str(node.target))(*args, **kwargs)
+        if node.op == "call_method":
+            return getattr(args[0], str(node.target))(*args[1:], **kwargs)
+        return node.target(*args, **kwargs)
+
+    def _add(self, layer: Layer) -> int:
+        self.layers.append(layer)
+        return len(self.layers) - 1
+
+    def _layer(self, node: fx.Node, bounded: list[fx.Node], index: dict, consts: dict) -> Layer:
+        inputs = tuple(index[a] for a in bounded)
+        name = node.name
+        if node.op == "call_module":
+            return self._module_layer(node, self.traced.get_submodule(str(node.target)), inputs)
+        target = node.target
+        if len(bounded) == 2 and node.op == "call_function" and target in SUMS and not node.kwargs:
+            return Layer("add", inputs, name=name)
+        if len(bounded) != 1 or sum(a is bounded[0] for a in node.args) > 1:
+            raise _unsupported(node, f"{getattr(target, '__name__', target)} of {len(bounded)} bounded tensors")
+        (x,) = bounded
+        if (node.op == "call_function" and target in RELU_FUNCTIONS) or (node.op == "call_method" and target == "relu"):
+            return Layer("relu", inputs, name=name)
+        if node.op == "call_function" and target is F.max_pool2d:
+            args = list(node.args[1:]) + [None] * 3
+            kernel = node.kwargs.get("kernel_size", args[0])
+            stride = node.kwargs.get("stride", args[1]) or kernel
+            padding = node.kwargs.get("padding", args[2] or 0)
+            return Layer(
+                "maxpool",
+                inputs,
+                pool=(_pair(kernel, "kernel"), _pair(stride, "stride"), _pair(padding, "padding")),
+                name=name,
+            )
+
+        def fn(value, node=node):
+            args = fx.node.map_arg(node.args, lambda a: value if a is x else consts[a])
+            kwargs = fx.node.map_arg(node.kwargs, lambda a: value if a is x else consts[a])
+            if node.op == "call_method" and node.target in ("view", "reshape"):  # keep the batch
+                shape = args[1] if len(args) == 2 and isinstance(args[1], (tuple, list)) else args[1:]
+                return value.reshape(value.shape[0], *shape[1:])
+            if node.op == "call_function" and node.target is torch.reshape:
+                return value.reshape(value.shape[0], *args[1][1:])
+            return self._call(node, args, kwargs)
+
+        others = [consts[a] for a in node.all_input_nodes if a is not x]
+        if node.op == "call_function" and target in SHIFTS:
+            return Layer("affine", inputs, fn, lambda r: r, name=name)
+        if node.op == "call_function" and target in SCALES and len(others) <= 1:
+            factor = others[0] if others else next(a for a in node.args if not isinstance(a, fx.Node))
+            return Layer("affine", inputs, fn, lambda r, f=factor: r * abs(f), name=name)
+        if node.op == "call_function" and target in DIVISIONS and node.args[0] is x:
+            divisor = node.args[1] if not isinstance(node.args[1], fx.Node) else consts[node.args[1]]
+            return Layer("affine", inputs, fn, lambda r, d=divisor: r / abs(d), name=name)
+        if (node.op == "call_function" and target in POSITIVE) or (
+            node.op == "call_method" and target in POSITIVE_METHODS
+        ):
+            return Layer("affine", inputs, fn, fn, name=name)
+        if node.op == "call_function" and target in (F.conv2d, F.linear) and node.args[0] is x:
+            weight = consts[node.args[1]] if isinstance(node.args[1], fx.Node) else node.args[1]
+            kwargs = {k: v for k, v in node.kwargs.items() if k != "bias"}
+            magnitude = functools.partial(_with_weight, target, weight.abs(), tuple(node.args[3:]), kwargs)
+            return Layer("affine", inputs, fn, magnitude, name=name)
+        raise _unsupported(node, f"{node.op} {getattr(target, '__name__', target)}")
+
+    def _module_layer(self, node: fx.Node, module: nn.Module, inputs: tuple[int, ...]) -> Layer:
+        name = node.name
+        if isinstance(module, nn.ReLU):
+            return Layer("relu", inputs, name=name)
+        if isinstance(module, nn.MaxPool2d):
+            if _pair(module.dilation, "dilation") != 1 or module.ceil_mode or module.return_indices:
+                raise _unsupported(node, "max pooling with dilation, ceil_mode or indices")
+            stride = module.stride or module.kernel_size
+            pool = (_pair(module.kernel_size, "kernel"), _pair(stride, "stride"), _pair(module.padding, "padding"))
+            return Layer("maxpool", inputs, pool=pool, name=name)
+        if isinstance(module, nn.Conv2d):
+            if module.padding_mode != "zeros":
+                raise _unsupported(node, f"convolution with padding_mode={module.padding_mode}")
+            rest = (module.stride, module.padding, module.dilation, module.groups)
+            magnitude = functools.partial(_with_weight, F.conv2d, module.weight.abs(), rest, {})
+            return Layer("affine", inputs, module, magnitude, name=name)
+        if isinstance(module, nn.Linear):
+            magnitude = functools.partial(_with_weight, F.linear, module.weight.abs(), (), {})
+            return Layer("affine", inputs, module, magnitude, name=name)
+        if isinstance(module, nn.BatchNorm2d):
+            if module.running_mean is None:
+                raise _unsupported(node, "batch norm without running statistics")
+            scale = torch.rsqrt(module.running_var + module.eps)
+            if module.weight is not None:
+                scale = scale * module.weight
+            shift = -module.running_mean * scale + (module.bias if module.bias is not None else 0.0)
+            scale, shift = scale.reshape(1, -1, 1, 1), shift.reshape(1, -1, 1, 1)
+            fn = functools.partial(_scaled, scale, shift)
+            return Layer("affine", inputs, fn, functools.partial(_scaled, scale.abs(), 0.0), name=name)
+        if isinstance(module, POSITIVE_MODULES):
+            return Layer("affine", inputs, module, module, name=name)
+        raise _unsupported(node, type(module).__name__)
+
+    # --- bounds ----------------------------------------------------------------------------------
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The network's logits in float64 through the layers themselves."""
+        values: list[torch.Tensor | None] = []
+        for layer in self.layers:
+            ins = [values[i] for i in layer.inputs]
+            if layer.kind == "input":
+                values.append(x.to(torch.float64))
+            elif layer.kind == "affine":
+                values.append(layer.fn(ins[0]))
+            elif layer.kind == "add":
+                values.append(ins[0] + ins[1])
+            elif layer.kind == "relu":
+                values.append(torch.relu(ins[0]))
+            else:
+                k, s, p = layer.pool
+                values.append(F.max_pool2d(ins[0], k, s, p))
+        return values[self.output]
+
+    def interval(
+        self, low: torch.Tensor, high: torch.Tensor, tighten: bool = False
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Bounds ``(lo, up)`` of every layer over the box ``[low, high]`` (B, ...): interval bounds,
+        and with ``tighten`` the pre-activation bounds of small ReLU layers by the backward pass."""
+        with torch.inference_mode(False):
+            return self._interval(low.to(torch.float64).clone(), high.to(torch.float64).clone(), tighten)
+
+    def _interval(
+        self, low: torch.Tensor, high: torch.Tensor, tighten: bool
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        bounds: list[tuple[torch.Tensor, torch.Tensor]] = []
+        exact = set()  # layers IBP bounds exactly: affine maps of the input alone
+        for k, layer in enumerate(self.layers):
+            if layer.kind == "input":
+                bounds.append((low, high))
+                exact.add(k)
+                continue
+            ins = [bounds[i] for i in layer.inputs]
+            with torch.no_grad():
+                if layer.kind == "affine":
+                    (lo, up) = ins[0]
+                    centre, radius = layer.fn((lo + up) / 2), layer.magnitude((up - lo) / 2)
+                    bounds.append((centre - radius, centre + radius))
+                    if layer.inputs[0] in exact:  # an affine map of the input alone: IBP is exact
+                        exact.add(k)
+                elif layer.kind == "add":
+                    bounds.append((ins[0][0] + ins[1][0], ins[0][1] + ins[1][1]))
+                elif layer.kind == "relu":
+                    (lo, up) = ins[0]
+                    source = layer.inputs[0]
+                    if tighten and source not in exact and self._affordable(source, bounds):
+                        lo, up = self._tightened(source, bounds)
+                        bounds[source] = (lo, up)
+                    bounds.append((torch.relu(lo), torch.relu(up)))
+                else:
+                    k_, s, p = layer.pool
+                    bounds.append((F.max_pool2d(ins[0][0], k_, s, p), F.max_pool2d(ins[0][1], k_, s, p)))
+        return bounds
+
+    def _affordable(self, source: int, bounds) -> bool:
+        neurons = bounds[source][0][0].numel()
+        widest = max(b[0][0].numel() for b in bounds[: source + 1])
+        return neurons <= self.crown_neurons and 2 * neurons * widest <= LAMBDA_BUDGET
+
+    def _tightened(self, source: int, bounds) -> tuple[torch.Tensor, torch.Tensor]:
+        """Layer ``source``'s bounds by the backward pass (one sample at a time), met with its own."""
+        l_old, u_old = bounds[source]
+        shape = l_old.shape[1:]
+        m = l_old[0].numel()
+        eye = torch.eye(m, dtype=torch.float64, device=l_old.device)
+        lam = torch.cat([eye, -eye]).reshape(1, 2 * m, *shape)
+        lows, highs = [], []
+        for b in range(len(l_old)):
+            one = [(lo[b : b + 1], hi[b : b + 1]) for lo, hi in bounds]
+            lower = self._backward(one, source, lam)[0]
+            lows.append(lower[:m].reshape(shape))
+            highs.append(-lower[m:].reshape(shape))
+        return torch.maximum(l_old, torch.stack(lows)), torch.minimum(u_old, torch.stack(highs))
+
+    def margins(
+        self, low: torch.Tensor, high: torch.Tensor, target: torch.Tensor | int, relaxation: str = "crown", upto=0.0
+    ):
+        """Lower bounds (B, K) of ``y_target - y_j`` for every class ``j`` over each box of
+        ``[low, high]`` (B, ...), +inf at ``j = target``: interval bounds alone
+        (``relaxation="interval"``) or the better of them and the backward relaxation (``"crown"``)
+        for the margins interval bounds leave at most ``upto``."""
+        b = len(low)
+        k = self.output_size(low)
+        target = torch.as_tensor(target).expand(b).long()
+        spec = -torch.eye(k, dtype=torch.float64).expand(b, k, k).clone()
+        spec[torch.arange(b), :, target] += 1.0
+        result = self.linear_lower(low, high, spec, relaxation, upto)
+        result[torch.arange(b), target.to(result.device)] = torch.inf
+        return result
+
+    def output_size(self, low: torch.Tensor) -> int:
+        with torch.inference_mode(False), torch.no_grad():
+            return int(self.forward(low[:1].to(torch.float64)).shape[1])
+
+    def linear_lower(self, low, high, spec: torch.Tensor, relaxation: str = "crown", upto: float = 0.0):
+        """Lower bounds (B, S) of ``spec . y`` (``spec``: (B, S, K) or (S, K)) over each box of
+        ``[low, high]``: from the logits' interval bounds, and with ``"crown"`` the better of
+        that and the backward relaxation, which runs only for the boxes and rows whose interval
+        bound is at most ``upto`` (0: those a property's sign still depends on; inf: all)."""
+        if relaxation not in ("interval", "crown"):
+            raise ValueError(f"relaxation {relaxation!r} is not one of interval, crown")
+        with torch.inference_mode(False):
+            low, high = low.to(torch.float64).clone(), high.to(torch.float64).clone()
+            bounds = self._interval(low, high, tighten=relaxation == "crown")
+            l_out, u_out = bounds[self.output]
+            spec = spec.to(torch.float64).to(l_out.device).expand(len(l_out), *spec.shape[-2:]).clone()
+            pos, neg = spec.clamp(min=0), spec.clamp(max=0)
+            result = (pos * l_out[:, None]).sum(-1) + (neg * u_out[:, None]).sum(-1)
+            open_ = (result <= upto) & (spec != 0).any(-1)  # the backward pass's work
+            for box in torch.nonzero(open_.any(1))[:, 0].tolist() if relaxation == "crown" else ():
+                rows = torch.nonzero(open_[box])[:, 0]  # one box at a time, only its open rows
+                some = [(lo[box : box + 1], up[box : box + 1]) for lo, up in bounds]
+                tighter = self._backward(some, self.output, spec[box : box + 1, rows])[0]
+                result[box, rows] = torch.maximum(result[box, rows], tighter)
+            return result.detach()
+
+    def input_weights(self, low: torch.Tensor, high: torch.Tensor, spec: torch.Tensor) -> torch.Tensor:
+        """(B, S, *input shape): each input's coefficient in the backward relaxation of ``spec . y``
+        over the box (its width times the coefficient's size is what it costs the bound: where
+        splitting the box helps most)."""
+        with torch.inference_mode(False):
+            bounds = self._interval(low.to(torch.float64).clone(), high.to(torch.float64).clone(), tighten=True)
+            spec = spec.to(torch.float64).to(low.device).expand(len(low), *spec.shape[-2:]).clone()
+            weights: list[torch.Tensor] = []
+            self._backward(bounds, self.output, spec, weights)
+            return weights[0].detach()
+
+    def _backward(self, bounds, start: int, lam: torch.Tensor, weights: list | None = None) -> torch.Tensor:
+        """A lower bound (B, S) of ``lam . y_start`` over the box, ``lam`` (B, S, *shape of layer
+        ``start``): the coefficients passed backwards through every layer to the input (appended
+        to ``weights`` when given)."""
+        coeffs: dict[int, torch.Tensor] = {start: lam}
+        const = torch.zeros(lam.shape[:2], dtype=torch.float64, device=lam.device)
+        for k in range(start, -1, -1):
+            if k not in coeffs:
+                continue
+            lam = coeffs.pop(k)
+            layer = self.layers[k]
+            n, s = lam.shape[:2]
+            if layer.kind == "input":
+                lo, up = bounds[k]
+                const += (lam.clamp(min=0) * lo[:, None] + lam.clamp(max=0) * up[:, None]).flatten(2).sum(-1)
+                if weights is not None:
+                    weights.append(lam)
+                continue
+            source = layer.inputs[0]
+            lo, up = bounds[source]
+            if layer.kind == "affine":
+                passed, offset = self._transpose(layer, lam, lo.shape[1:])
+                const += offset
+            elif layer.kind == "add":
+                self._accumulate(coeffs, layer.inputs[1], lam)
+                passed = lam
+            elif layer.kind == "relu":
+                lo, up = lo[:, None], up[:, None]
+                active, unstable = lo >= 0, (lo < 0) & (up > 0)
+                width = torch.where(unstable, up - lo, torch.ones_like(up))
+                upper = torch.where(active, 1.0, torch.where(unstable, up / width, 0.0))
+                lower = torch.where(active, 1.0, torch.where(unstable & (up > -lo), 1.0, 0.0))
+                pos, neg = lam.clamp(min=0), lam.clamp(max=0)
+                passed = pos * lower + neg * upper
+                const += (neg * torch.where(unstable, -upper * lo, 0.0)).flatten(2).sum(-1)
+            else:
+                passed, offset = self._pool_backward(layer, lam, lo, up)
+                const += offset
+            self._accumulate(coeffs, source, passed)
+        return const
+
+    @staticmethod
+    def _accumulate(coeffs: dict, k: int, lam: torch.Tensor) -> None:
+        coeffs[k] = coeffs[k] + lam if k in coeffs else lam
+
+    @staticmethod
+    def _transpose(layer: Layer, lam: torch.Tensor, shape) -> tuple[torch.Tensor, torch.Tensor]:
+        """``lam A`` and ``lam . b`` for the affine layer ``x -> A x + b``."""
+        n, s = lam.shape[:2]
+        zero = torch.zeros((n * s, *shape), dtype=torch.float64, device=lam.device, requires_grad=True)
+        with torch.enable_grad():
+            out = layer.fn(zero)
+            (passed,) = torch.autograd.grad(out, zero, lam.reshape(n * s, *lam.shape[2:]))
+        offset = (lam * out.detach()[:1].reshape(1, 1, *lam.shape[2:])).flatten(2).sum(-1)
+        return passed.reshape(n, s, *shape), offset
+
+    @staticmethod
+    def _pool_backward(layer: Layer, lam: torch.Tensor, lo: torch.Tensor, up: torch.Tensor):
+        """Max pooling's relaxation (module docstring) passed backwards."""
+        k, stride, pad = layer.pool
+        n, c, h, w = lo.shape
+        s = lam.shape[1]
+
+        def windows(t):
+            t = F.pad(t, (pad, pad, pad, pad), value=-torch.inf)
+            return F.unfold(t, k, stride=stride).reshape(n, c, k * k, -1)
+
+        lw, uw = windows(lo), windows(up)
+        best = lw.argmax(2, keepdim=True)  # (n, c, 1, L)
+        others = uw.scatter(2, best, -torch.inf).amax(2)
+        decided = lw.gather(2, best)[:, :, 0] >= others  # (n, c, L)
+        top = uw.amax(2)
+        lam = lam.reshape(n, s, c, -1)
+        pos, neg = lam.clamp(min=0), lam.clamp(max=0)
+        decided = decided[:, None]
+        chosen = pos + torch.where(decided, neg, 0.0)
+        offset = (torch.where(decided, 0.0, neg) * top[:, None]).flatten(2).sum(-1)
+        spread = torch.zeros(n, s, c, k * k, lam.shape[-1], dtype=torch.float64, device=lam.device)
+        spread.scatter_(3, best[:, None].expand(n, s, c, 1, -1), chosen[:, :, :, None])
+        folded = F.fold(spread.reshape(n * s, c * k * k, -1), (h + 2 * pad, w + 2 * pad), k, stride=stride)
+        passed = folded[:, :, pad : pad + h, pad : pad + w].reshape(n, s, c, h, w)
+        return passed, offset

@@ -1,0 +1,403 @@
+"""Deterministic certification of a pose interval by bound propagation (``method=bound_propagation``).
+
+A test image is certified for the whole interval ``[-a, a]`` on one motion axis, for the base
+classifier itself, with no samples and no probability: the interval is cut into pieces; for
+each piece :func:`~mrcert.core.pose_bounds.image_boxes` bounds every pixel and channel of any
+image projected from a pose of the piece (occlusion, rounding, the border, the camera plane and
+empty pixels included), and :class:`~mrcert.core.propagation.BoundNetwork` pushes that box
+through the classifier to a lower bound on the margin ``y_c - y_j`` between the class ``c``
+predicted at the test pose and every other class. A piece whose bound is positive is verified;
+one that is not is bisected, until
+
+* every piece is verified: **verified**, the certificate's radius is ``a``;
+* a pose of the interval is classified otherwise (the interval's evenly sampled poses, then the
+  midpoint of every piece that is split, then a local search around the pose of least margin):
+  **falsified**, with that pose logged;
+* the budget (``max_pieces`` pieces bounded, ``seconds``) is spent: **unknown**.
+
+Guarantee: verified means that ``h(O(V, alpha)) = c`` for every ``|alpha| <= a`` on the axis,
+where ``h`` is the base classifier in exact arithmetic (the bounds are computed in float64);
+nothing is assumed about a distribution.
+"""
+
+from __future__ import annotations
+
+import heapq
+import time
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from mrcert.core.crop import CropBound
+from mrcert.core.geometry import axis_index, is_translation, unit
+from mrcert.core.method import ABSTAIN, BaseClassifier, Certificate, CertifyRequest, Method, SceneRender, single_axis
+from mrcert.core.models import predicted
+from mrcert.core.pose_bounds import image_boxes
+from mrcert.core.propagation import BoundNetwork
+from mrcert.core.smoothing import CameraMotionSmoothing
+from mrcert.errors import ConfigError, MrcertError
+
+OUTCOMES = ("verified", "falsified", "unknown")
+SEARCH_STEPS = 8
+"""Steps of the local search for a falsifying pose after the evenly sampled ones."""
+
+
+@dataclass(frozen=True)
+class BoundPropagation(Method):
+    """The method (module docstring); its certifier is :class:`IntervalVerifier`."""
+
+    axis: str
+    half_width: float
+    relaxation: str = "crown"
+    max_pieces: int = 512
+    seconds: float = 120.0
+    samples: int = 33
+    batch: int = 8
+    crown_neurons: int = 2048
+
+    log_columns: ClassVar[tuple[str, ...]] = ("outcome", "pieces", "bound_passes", "forward_passes", "counterexample")
+
+    def __post_init__(self):
+        axis_index(self.axis)
+        if not self.half_width > 0:
+            raise ConfigError("method.half_width", self.half_width, "> 0 (the motion's unit)")
+        if not is_translation(self.axis) and self.half_width >= np.pi / 2:
+            raise ConfigError(
+                "method.half_width", self.half_width, f"< pi/2 on {self.axis} (each piece narrower than pi)"
+            )
+        if self.relaxation not in ("interval", "crown"):
+            raise ConfigError("method.relaxation", self.relaxation, "interval or crown")
+        for key, value, least in (
+            ("max_pieces", self.max_pieces, 1),
+            ("samples", self.samples, 2),
+            ("batch", self.batch, 1),
+        ):
+            if int(value) != value or value < least:
+                raise ConfigError(f"method.{key}", value, f"an integer >= {least}")
+        if int(self.crown_neurons) != self.crown_neurons or self.crown_neurons < 0:
+            raise ConfigError("method.crown_neurons", self.crown_neurons, "an integer >= 0")
+        if not self.seconds > 0:
+            raise ConfigError("method.seconds", self.seconds, "> 0 (the time budget per image)")
+
+    @classmethod
+    def from_config(cls, method: DictConfig, motion: DictConfig) -> BoundPropagation:
+        if motion.get("axes"):
+            raise ConfigError(
+                "motion", motion.get("axis"), "one axis: method=bound_propagation certifies an interval on one"
+            )
+        return cls(
+            single_axis(motion),
+            float(method.half_width),
+            str(method.relaxation),
+            method.max_pieces,
+            float(method.seconds),
+            method.samples,
+            method.batch,
+            method.crown_neurons,
+        )
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return (self.axis,)
+
+    @property
+    def sigmas(self) -> tuple[float, ...]:
+        return ()
+
+    @property
+    def region_unit(self) -> str:
+        return unit(self.axis)
+
+    def judged_at(self, radius: float) -> float:
+        """The interval's half-width: all a certificate can reach."""
+        return self.half_width
+
+    def region(self) -> str:
+        return (
+            f"every pose |{self.axis}| <= {self.half_width:g} {unit(self.axis)} when R > 0, for the base classifier "
+            f"itself and with certainty (bound propagation, {self.relaxation}); R is {self.half_width:g} or 0"
+        )
+
+    def crop_bound(self, sigmas: float) -> CropBound:
+        """The interval's motions: motion smoothing's bound for one standard deviation of ``half_width``."""
+        return CameraMotionSmoothing((self.axis,), (self.half_width,)).crop_bound(1.0)
+
+    def certifier(self, base: BaseClassifier) -> IntervalVerifier:
+        return IntervalVerifier(self, base)
+
+
+@dataclass(order=True)
+class Piece:
+    margin: float  # its parent's bound (the first to be bounded: the least)
+    start: float
+    end: float
+
+
+class IntervalVerifier:
+    """:class:`BoundPropagation` bound to a base classifier: its graph read once for bounds."""
+
+    def __init__(self, method: BoundPropagation, base: BaseClassifier):
+        self.method, self.base = method, base
+        self.network = BoundNetwork(base.model, method.crown_neurons)
+
+    def certify_sample(self, render, request: CertifyRequest, generator: torch.Generator) -> Certificate:
+        """Verify, falsify, or give up on one test sample (module docstring); draws nothing."""
+        if not isinstance(render, SceneRender):
+            raise MrcertError("bound propagation needs a renderer that shows its scene (TestSample.renderer())")
+        return _Run(self, render).result()
+
+
+class _Run:
+    """One test sample's verification: its counters and the search over pieces."""
+
+    def __init__(self, verifier: IntervalVerifier, render):
+        self.m, self.base, self.network, self.render = verifier.method, verifier.base, verifier.network, render
+        self.start = time.perf_counter()
+        self.forward_passes = 0
+        self.bound_passes = 0
+        self.i = axis_index(self.m.axis)
+
+    def motions(self, amounts) -> torch.Tensor:
+        motions = torch.zeros(len(amounts), 6, dtype=torch.float64)
+        motions[:, self.i] = torch.as_tensor(np.asarray(amounts, np.float64))
+        return motions
+
+    @torch.inference_mode()
+    def logits(self, amounts) -> torch.Tensor:
+        """The base classifier's logits (float32, CPU) at the poses ``amounts`` on the axis."""
+        self.forward_passes += len(amounts)
+        out = []
+        step = max(int(self.base.batch_size), 1)
+        for s in range(0, len(amounts), step):
+            images = self.render(self.motions(amounts[s : s + step]))
+            out.append(self.base.model(images.to(self.base.device)).float().cpu())
+        return torch.cat(out)
+
+    def margins(self, logits: torch.Tensor, c: int) -> np.ndarray:
+        others = logits.clone()
+        others[:, c] = -torch.inf
+        margin = (logits[:, c] - others.max(1).values).double().numpy()
+        wrong = np.minimum(np.nan_to_num(margin, nan=-np.inf), -np.finfo(np.float64).tiny)  # negative, strictly
+        return np.where(predicted(logits).numpy() == c, margin, wrong)
+
+    def result(self) -> Certificate:
+        a = self.m.half_width
+        centre = self.logits([0.0])
+        c = int(predicted(centre)[0])
+        if c < 0:
+            return self.certificate(ABSTAIN, "unknown", float("nan"), 0, float("nan"))
+        poses = np.linspace(-a, a, int(self.m.samples))
+        found = self.falsify(poses, c, SEARCH_STEPS)
+        if found is not None:
+            return self.certificate(c, "falsified", found[1], 0, found[0])
+        ends = self.motions([-a, a])
+        points, colors, rank = self.render.cloud_for(ends)
+        queue = [Piece(-np.inf, -a, a)]
+        verified_margin, pieces = np.inf, 0
+        while queue:
+            if self.bound_passes >= self.m.max_pieces or time.perf_counter() - self.start > self.m.seconds:
+                worst = min(p.margin for p in queue)
+                return self.certificate(c, "unknown", worst, pieces + len(queue), float("nan"))
+            batch = [
+                heapq.heappop(queue)
+                for _ in range(min(self.m.batch, len(queue), self.m.max_pieces - self.bound_passes))
+            ]
+            low, high = self.boxes(points, colors, rank, batch)
+            bounds = self.network.margins(low, high, c, self.m.relaxation).min(1).values.cpu().numpy()
+            self.bound_passes += len(batch)
+            split = []
+            for piece, bound in zip(batch, bounds, strict=True):
+                if bound > 0:
+                    verified_margin, pieces = min(verified_margin, float(bound)), pieces + 1
+                else:
+                    mid = 0.5 * (piece.start + piece.end)
+                    split.append((piece, mid, float(bound)))
+            if split:
+                found = self.falsify(np.array([mid for _, mid, _ in split]), c)
+                if found is not None:
+                    return self.certificate(c, "falsified", found[1], pieces, found[0])
+                for piece, mid, bound in split:
+                    if not (piece.start < mid < piece.end):  # no narrower piece in float64: give up on it
+                        return self.certificate(c, "unknown", bound, pieces + len(queue) + 1, float("nan"))
+                    heapq.heappush(queue, Piece(bound, piece.start, mid))
+                    heapq.heappush(queue, Piece(bound, mid, piece.end))
+        return self.certificate(c, "verified", verified_margin, pieces, float("nan"))
+
+    def boxes(self, points, colors, rank, batch: list[Piece]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every pixel's bounds over each piece of ``batch``, where the model runs."""
+        low, high = image_boxes(
+            points, colors, self.render.K, self.m.axis, [p.start for p in batch], [p.end for p in batch],
+            self.render.height, self.render.width, self.render.background, rank,
+        )  # fmt: skip
+        device = self.base.device
+        return torch.from_numpy(low).to(device), torch.from_numpy(high).to(device)
+
+    def falsify(self, poses: np.ndarray, c: int, search: int = 0) -> tuple[float, float] | None:
+        """A pose among ``poses`` classified otherwise than ``c``, and its margin, or None. With
+        ``search``, that many steps of a pattern search from the pose of least margin follow
+        (the neighbours at half the step, the step halved each time), within the interval."""
+        margins = self.margins(self.logits(poses), c)
+        worst = int(np.argmin(margins))
+        pose, margin = float(poses[worst]), float(margins[worst])
+        step = 2 * self.m.half_width / max(len(poses) - 1, 1) / 2
+        for _ in range(search):
+            if margin < 0:
+                break
+            near = np.clip([pose - step, pose + step], -self.m.half_width, self.m.half_width)
+            values = self.margins(self.logits(near), c)
+            k = int(np.argmin(values))
+            if values[k] < margin:
+                pose, margin = float(near[k]), float(values[k])
+            step /= 2
+        return (pose, margin) if margin < 0 else None
+
+    def certificate(self, c: int, outcome: str, margin: float, pieces: int, pose: float) -> Certificate:
+        radius = self.m.half_width if outcome == "verified" else 0.0
+        return Certificate(
+            c,
+            radius,
+            0,
+            float("nan"),
+            0,
+            self.m.region_unit,
+            float(margin),
+            {
+                "outcome": outcome,
+                "pieces": int(pieces),
+                "bound_passes": self.bound_passes,
+                "forward_passes": self.forward_passes,
+                "counterexample": float(pose),
+            },
+        )
+
+
+@dataclass
+class BoxVerdict:
+    """What :func:`verify_box` found: ``unsat`` (verified), ``sat`` (with an input ``x`` and its
+    outputs ``y``), ``unknown`` or ``timeout``; ``margin``: the least, over the disjuncts still
+    open, of the best lower bound by which one of its conjuncts fails (positive when verified)."""
+
+    result: str
+    margin: float
+    boxes: int
+    forward_passes: int
+    x: np.ndarray | None = None
+    y: np.ndarray | None = None
+
+
+def verify_box(
+    model: torch.nn.Module,
+    network: BoundNetwork,
+    low: torch.Tensor,
+    high: torch.Tensor,
+    unsafe: list[list[tuple[np.ndarray, float]]],
+    timeout: float,
+    relaxation: str = "crown",
+    max_boxes: int = 4096,
+    batch: int = 8,
+    seed: int = 0,
+) -> BoxVerdict:
+    """Whether some input of the box ``[low, high]`` (shaped as the model's input, batch 1) gives
+    outputs in the unsafe region (a VNN-LIB property's disjunction of conjunctions ``c . y + d >= 0``).
+
+    Falsification first (the box's centre and corners, seeded random points, then signed-gradient
+    steps towards the unsafe disjunct nearest to holding), then bound propagation: a disjunct is
+    ruled out on a box when one of its conjuncts' upper bound is negative; a box where some
+    disjunct stays open is split in two along the input whose width costs the bound of its
+    worst disjunct most (width times the backward relaxation's coefficient; with interval
+    bounds alone, the widest input), until every box is verified (``unsat``), a point is
+    found (``sat``), ``max_boxes`` boxes are bounded (``unknown``) or ``timeout`` seconds pass."""
+    start = time.perf_counter()
+    device = next(iter(network.traced.buffers()), torch.zeros(0)).device
+    low, high = low.to(torch.float64).to(device), high.to(torch.float64).to(device)
+    rows = [(c, d) for conj in unsafe for c, d in conj]
+    spec = torch.tensor(np.array([-c for c, _ in rows]), dtype=torch.float64)
+    offset = torch.tensor([d for _, d in rows], dtype=torch.float64, device=device)
+    owner = np.repeat(np.arange(len(unsafe)), [len(conj) for conj in unsafe])
+    forwards = 0
+
+    def outputs(x: torch.Tensor) -> np.ndarray:
+        nonlocal forwards
+        forwards += len(x)
+        with torch.inference_mode():
+            return (
+                model(x.to(device=device, dtype=next(model.parameters(), next(model.buffers())).dtype))
+                .double()
+                .cpu()
+                .numpy()
+            )
+
+    def violation(y: np.ndarray) -> np.ndarray:
+        """Per point, the least over disjuncts of the worst conjunct's slack (<= 0: unsafe holds)."""
+        slack = -(y @ np.array([c for c, _ in rows]).T + offset.cpu().numpy())  # > 0: conjunct fails
+        per = np.full((len(y), len(unsafe)), -np.inf)
+        for k in range(len(unsafe)):
+            per[:, k] = slack[:, owner == k].max(1)
+        return per.min(1)
+
+    g = torch.Generator().manual_seed(seed)
+    width = high - low
+    points = [low, high, (low + high) / 2]
+    points += [low + width * torch.rand(low.shape, generator=g, dtype=torch.float64).to(device) for _ in range(32)]
+    xs = torch.cat(points)
+    ys = outputs(xs)
+    v = violation(ys)
+    best = int(np.argmin(v))
+    x = xs[best : best + 1].clone()
+    for step in range(20):  # signed gradient steps on the float64 network
+        if v[best] <= 0 or not (width > 0).any():
+            break
+        x.requires_grad_(True)
+        with torch.inference_mode(False), torch.enable_grad():
+            y = network.forward(x)
+            slack = y @ spec.to(device).T - offset  # -(c . y + d): > 0 where the conjunct fails
+            masks = [torch.from_numpy(owner == k).to(device) for k in range(len(unsafe))]
+            per = torch.stack([slack[:, m].max(1).values for m in masks], 1)
+            (grad,) = torch.autograd.grad(per.min(), x)
+        x = torch.minimum(torch.maximum(x.detach() - width * 0.25 * 0.8**step * grad.sign(), low), high)
+        yx = outputs(x)
+        vx = violation(yx)[0]
+        if vx < v[best]:
+            xs[best : best + 1], ys[best], v[best] = x, yx[0], vx
+    if v[best] <= 0:
+        return BoxVerdict("sat", float(v[best]), 0, forwards, xs[best].cpu().numpy(), ys[best])
+    queue = [(low, high)]
+    boxes, worst = 0, np.inf
+    while queue:
+        if time.perf_counter() - start > timeout:
+            return BoxVerdict("timeout", -np.inf, boxes, forwards)
+        if boxes >= max_boxes:
+            return BoxVerdict("unknown", -np.inf, boxes, forwards)
+        part, queue = queue[:batch], queue[batch:]
+        lo, hi = torch.cat([p[0] for p in part]), torch.cat([p[1] for p in part])
+        bound = network.linear_lower(lo, hi, spec, relaxation) - offset  # > 0: the conjunct fails throughout
+        boxes += len(part)
+        per = torch.stack(
+            [bound[:, torch.from_numpy(owner == k).to(bound.device)].max(1).values for k in range(len(unsafe))], 1
+        )
+        margin = per.min(1).values.cpu().numpy()
+        for j, m in enumerate(margin):
+            if m > 0:
+                worst = min(worst, float(m))
+                continue
+            wide = (hi[j] - lo[j]).flatten()
+            cost = wide
+            if (wide > 0).any() and relaxation == "crown":  # split where width costs the bound most
+                weakest = torch.from_numpy(owner == int(per[j].argmin())).to(bound.device)
+                row = int(torch.nonzero(weakest)[int(bound[j, weakest].argmax())])
+                weight = network.input_weights(lo[j : j + 1], hi[j : j + 1], spec[row : row + 1])[0, 0].flatten()
+                cost = wide * weight.abs() if (wide * weight.abs() > 0).any() else wide
+            if not (wide > 0).any():  # a point whose bound does not decide: the network is evaluated there
+                y = outputs(lo[j : j + 1])
+                if violation(y)[0] <= 0:
+                    return BoxVerdict("sat", float(violation(y)[0]), boxes, forwards, lo[j].cpu().numpy(), y[0])
+                return BoxVerdict("unknown", float(m), boxes, forwards)
+            k = int(torch.argmax(cost))
+            mid = (lo[j].flatten()[k] + hi[j].flatten()[k]) / 2
+            left_hi, right_lo = hi[j : j + 1].clone(), lo[j : j + 1].clone()
+            left_hi.view(-1)[k], right_lo.view(-1)[k] = mid, mid
+            queue += [(lo[j : j + 1], left_hi), (right_lo, hi[j : j + 1])]
+    return BoxVerdict("unsat", worst, boxes, forwards)
