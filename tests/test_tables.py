@@ -584,9 +584,23 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
     # Motion smoothing on the pixel-noise model: both methods on one base classifier.
     run(tmp_path, [*motion, *shared, "task=certify", "model.trained_for={name:pixelwise,sigma:0.25}"], "cms-noise")
+    # The deterministic method on both models, the same interval and images (every 5th).
+    bound = [*motion, *shared, "task=certify", "task.skip=5", "method=bound_propagation", "method.half_width=0.001"]
+    budget = ["method.max_pieces=2", "method.samples=3"]
+    run(tmp_path, [*bound, *budget, "model.trained_for={name:camera_motion}"], "bp")
+    run(tmp_path, [*bound, *budget, "model.trained_for={name:pixelwise,sigma:0.25}"], "bp-noise")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     src = ExperimentCells(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
-    df = side_by_side.runs(src)
+    df = side_by_side.runs(src, deterministic=("method=bound_propagation", *budget))
+    # The deterministic method's rows: the share verified with the right class, on the same images.
+    for row, name in zip(df.iloc[3:].itertuples(), ("bp", "bp-noise"), strict=True):
+        log = read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"])
+        assert set(log.idx) == set(row.log.idx) and row.kind == "deterministic"
+        verified = (log.outcome == "verified") & (log.correct == 1)
+        assert df.loc[row.Index, "certified accuracy"] == verified.mean()
+        assert df.loc[row.Index, "left by the bound"] == (log.outcome == "unknown").sum()
+    assert list(df["base model"].iloc[3:]) == ["motion-augmented model", "pixel-noise model (sigma 0.25)"]
+    df = df.iloc[:3]
     cms, noise, pws = (
         read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"]) for name in ("cms", "cms-noise", "pws")
     )

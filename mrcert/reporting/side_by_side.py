@@ -1,11 +1,14 @@
-"""Camera motion smoothing beside pixel-wise smoothing (``experiment=side_by_side``, docs/method.md §8).
+"""Camera motion smoothing, pixel-wise smoothing and bound propagation side by side
+(``experiment=side_by_side``, docs/method.md §8, §9).
 
 Rows per finished pixel-wise certify run of the experiment's sweep (axis, interval ``[-a, a]``,
 frames), all restricted to that run's test images: the fixed-n CERTIFY run of
 ``experiment=reproduce_quick`` on the same axis and architecture, by camera motion smoothing,
 once with its own motion-augmented model and once with the pixel-wise run's pixel-noise model
 (``model.trained_for``: both methods on one base classifier, as the PwS authors compared them);
-then the pixel-wise run. Each row gives the certified accuracy at the motion radius ``a``
+then the pixel-wise run; then the certify runs of the deterministic method on the same interval
+and images (``method=bound_propagation`` under ``experiment=reproduce_quick``, with each of the two
+base classifiers), where they have finished. Each row gives the certified accuracy at the motion radius ``a``
 (pixel-wise smoothing certifies the whole interval or nothing; motion smoothing certifies
 ``|motion| < R``) with its exact (Clopper-Pearson) 95% interval over the images, the base
 classifier's accuracy on the clean test images and, for a pixel-noise model, on noisy ones (its
@@ -23,6 +26,7 @@ import pandas as pd
 
 from mrcert.core.geometry import unit
 from mrcert.reporting import certify_log
+from mrcert.reporting.cells import compose_config
 from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
 
 EXPERIMENT = "side_by_side"
@@ -77,13 +81,31 @@ def _certified(log: pd.DataFrame, radius: float) -> dict[str, float]:
     return {"certified accuracy": certify_log.certified_accuracy(log, radius), "low": low, "high": high}
 
 
-def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
+DETERMINISTIC = ("method=bound_propagation",)
+"""The overrides that pick the deterministic method's certify runs beside the smoothing methods'."""
+
+
+def _deterministic(log: pd.DataFrame) -> dict[str, float]:
+    """Per image: camera poses projected, forward passes (poses classified) and seconds."""
+    return {
+        "poses projected / image": float(log["projected"].mean()),
+        "forward passes / image": float(log["forward_passes"].mean()),
+        "seconds / image": float(log["seconds"].mean()),
+        "left by the bound": float((log["outcome"] == "unknown").sum()),
+        "left by the classes": float((log["outcome"] == "falsified").sum()),
+    }
+
+
+def runs(
+    src: ExperimentCells, experiment: str = EXPERIMENT, deterministic: tuple[str, ...] = DETERMINISTIC
+) -> pd.DataFrame:
     """Per finished pixel-wise run of the experiment, on its images: motion smoothing on the
     motion-augmented model and on the pixel-noise model (each where its run has finished), then
     pixel-wise smoothing; empty when no pixel-wise run has finished."""
     rows = []
     head = (f"profile={src.profile}", "task=certify")
     of_motion = tuple(o for o in src.overrides if not o.startswith("method."))  # method.*: pixel-wise's own
+    motion_method = compose_config(["task=certify"]).method.name  # the default: camera motion smoothing
     for combo in sweep_combos(experiment):
         pixelwise = src.index.cell((f"experiment={experiment}", *head, *src.overrides, *combo))
         log = src.index.log(pixelwise)
@@ -127,6 +149,7 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
             rows.append(
                 common
                 | {
+                    "kind": "smoothed over motions",
                     "method": f"motion smoothing (sigma {float(motion.cfg.motion.sigma):g} {unit(axis)})",
                     "base model": trained,
                     "frames": np.nan,
@@ -141,6 +164,7 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
         rows.append(
             common
             | {
+                "kind": "smoothed over pixels",
                 "method": f"pixel-wise smoothing (sigma {float(cfg.method.sigma):g})",
                 "base model": noise,
                 "frames": frames,
@@ -153,6 +177,40 @@ def runs(src: ExperimentCells, experiment: str = EXPERIMENT) -> pd.DataFrame:
                 "log": log,
             }
         )
+        for trained, extra, noisy in own:  # the deterministic method on each base classifier
+            chosen = extra or (f"model.trained_for={{name:{motion_method}}}",)
+            cell = src.index.cell(
+                (
+                    f"experiment={MOTION_EXPERIMENT}",
+                    *head,
+                    *of_motion,
+                    f"motion={axis}",
+                    f"model.variant={cfg.model.variant}",
+                    f"task.skip={int(cfg.task.skip)}",
+                    *deterministic,
+                    f"method.half_width={half_width}",
+                    *chosen,
+                )
+            )
+            bound_log = src.index.log(cell)
+            if bound_log is None:
+                continue
+            same = bound_log[bound_log["idx"].isin(images)]
+            rows.append(
+                common
+                | {
+                    "kind": "deterministic",
+                    "method": f"bound propagation ({cell.cfg.method.relaxation})",
+                    "base model": trained,
+                    "frames": np.nan,
+                    **_certified(same, half_width),
+                    **_base_accuracy(src, cell.train_run, noisy),
+                    **_deterministic(same),
+                    "machine": _machine(src, cell.run_ids[0]),
+                    "run_id": cell.run_ids[0],
+                    "log": same,
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -207,14 +265,17 @@ def figure(df: pd.DataFrame):
     for ax, axis in zip(grid.ravel(), axes, strict=True):
         rows = df[df["axis"] == axis]
         smallest = float(rows["half_width"].min())
-        for _, row in rows[rows["frames"].isna()].drop_duplicates("base model").iterrows():
+        for _, row in rows[rows["kind"] == "smoothed over motions"].drop_duplicates("base model").iterrows():
             radii, acc = certify_log.curve(row["log"])
             radii = np.maximum(radii, smallest / 10)  # log scale: radius 0 drawn at the left edge
             label = f"{row['method']}, {row['base model']}"
             ax.step(np.append(radii, radii[-1] * 1.05), np.append(acc, 0.0), where="pre", label=label)
-        for method, group in rows[rows["frames"].notna()].groupby("method"):
-            ax.plot(group["half_width"], group["certified accuracy"], "o", label=f"{method}, whole interval")
-            for _, row in group.iterrows():
+        for (method, model), group in rows[rows["kind"] != "smoothed over motions"].groupby(["method", "base model"]):
+            marker = "o" if group["frames"].notna().all() else "s"
+            ax.plot(
+                group["half_width"], group["certified accuracy"], marker, label=f"{method}, {model}, whole interval"
+            )
+            for _, row in group[group["frames"].notna()].iterrows():
                 ax.annotate(f"{int(row['frames'])} frames", (row["half_width"], row["certified accuracy"]), fontsize=7)
         ax.set(
             xscale="log",
@@ -225,6 +286,6 @@ def figure(df: pd.DataFrame):
         )
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("Motion smoothing and pixel-wise smoothing, same test views")
+    fig.suptitle("Motion smoothing, pixel-wise smoothing and bound propagation, same test views")
     fig.tight_layout()
     return fig
