@@ -328,3 +328,30 @@ def test_tasks_it_cannot_serve_are_refused_naming_what_it_serves():
     validate(compose_cfg([*base, "task=attack", "task.smoothed=false"]))  # the base model alone
     with pytest.raises(ConfigError, match="method.relaxation"):
         BoundPropagation("tz", 0.01, relaxation="alpha")
+
+
+def test_a_piece_down_to_two_float_poses_is_decided_by_classifying_them():
+    """A dark point crosses from column 80 into column 79 at tx = 1 mm. Any piece holding that pose
+    has both pixels free in its box, whose corner with both dark fails the classifier (dark pixels
+    of the two, fewer than one white); no rendered image has both dark. Bisection reaches pieces
+    of at most 1,024 float64 poses around the crossing, each decided by classifying every one of
+    its poses: verified, and every pose sampled is classified right."""
+    points = torch.tensor([[1e-3, 0.0005, 1.0]], dtype=torch.float64)
+    colors = torch.zeros(1, 3)
+    row = int(PAPER_K[1, 1].item() * 0.0005 + PAPER_K[1, 2].item())
+    mask = torch.zeros(3, H, W)
+    mask[:, row, 79:81] = 1.0 / 3
+    head = nn.Linear(3 * H * W, 2)
+    with torch.no_grad():
+        head.weight.copy_(torch.stack([10 * mask.flatten(), -10 * mask.flatten()]))
+        head.bias.copy_(torch.tensor([-5.0, 5.0]))  # white pixels among the two, less a half
+    model = nn.Sequential(nn.Flatten(), head)
+    sample = TestSample.build(points.numpy(), colors.numpy(), PAPER_K, H, W, label=0)
+    cert = verifier(model, "tx", 2e-3, samples=3, max_pieces=400, seconds=120).certify_sample(
+        sample.renderer(), REQUEST, torch.Generator()
+    )
+    assert cert.details["outcome"] == "verified" and cert.radius == 2e-3
+    assert cert.details["bound_passes"] > 40  # it went down to float resolution around the crossing
+    with torch.no_grad():
+        seen = model(sample.renderer()(piece_poses("tx", -2e-3, 2e-3, 2000))).argmax(1)
+    assert (seen == 0).all()

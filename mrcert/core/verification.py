@@ -9,15 +9,17 @@ through the classifier to a lower bound on the margin ``y_c - y_j`` between the 
 predicted at the test pose and every other class. A piece whose bound is positive is verified;
 one that is not is bisected, until
 
-* every piece is verified: **verified**, the certificate's radius is ``a``;
+* every piece is verified: **verified**, the certificate's radius is ``a`` (a piece that holds
+  at most :data:`LEAF_POSES` float64 values -- the only poses the projection can be given -- is
+  decided by classifying each of them);
 * a pose of the interval is classified otherwise (the interval's evenly sampled poses, then the
   midpoint of every piece that is split, then a local search around the pose of least margin):
   **falsified**, with that pose logged;
 * the budget (``max_pieces`` pieces bounded, ``seconds``) is spent: **unknown**.
 
-Guarantee: verified means that ``h(O(V, alpha)) = c`` for every ``|alpha| <= a`` on the axis,
-where ``h`` is the base classifier in exact arithmetic (the bounds are computed in float64);
-nothing is assumed about a distribution.
+Guarantee: verified means that ``h(O(V, alpha)) = c`` for every ``|alpha| <= a`` on the axis (every
+pose the projection can be given, a float64), where ``h`` is the base classifier in exact
+arithmetic (the bounds are computed in float64); nothing is assumed about a distribution.
 """
 
 from __future__ import annotations
@@ -43,6 +45,24 @@ from mrcert.errors import ConfigError, MrcertError
 OUTCOMES = ("verified", "falsified", "unknown")
 SEARCH_STEPS = 8
 """Steps of the local search for a falsifying pose after the evenly sampled ones."""
+
+LEAF_POSES = 1024
+"""A piece that fails its bound and holds at most this many float64 poses is decided by
+classifying every one of them (the projection is given float64 poses: there are no others)."""
+
+
+def float_poses(start: float, end: float, limit: int) -> np.ndarray | None:
+    """Every float64 value in ``[start, end]`` (0 once), in order, when there are at most ``limit``; else None."""
+    if start < 0 < end:
+        below, above = float_poses(start, -0.0, limit), float_poses(0.0, end, limit)
+        if below is None or above is None or len(below) + len(above) - 1 > limit:
+            return None
+        return np.concatenate([below[:-1], above])
+    ia, ib = (int(np.float64(v).view(np.int64)) for v in (start, end))
+    if abs(ib - ia) + 1 > limit:
+        return None
+    values = np.arange(min(ia, ib), max(ia, ib) + 1, dtype=np.int64).view(np.float64)
+    return np.sort(values)
 
 
 @dataclass(frozen=True)
@@ -220,8 +240,14 @@ class _Run:
                 if found is not None:
                     return self.certificate(c, "falsified", found[1], pieces, found[0])
                 for piece, mid, bound in split:
-                    if not (piece.start < mid < piece.end):  # no narrower piece in float64: give up on it
-                        return self.certificate(c, "unknown", bound, pieces + len(queue) + 1, float("nan"))
+                    poses = float_poses(piece.start, piece.end, LEAF_POSES)
+                    if poses is not None:  # few enough poses to classify every one of them
+                        margins = self.margins(self.logits(poses), c)
+                        if margins.min() < 0:
+                            worst = int(np.argmin(margins))
+                            return self.certificate(c, "falsified", margins[worst], pieces, float(poses[worst]))
+                        verified_margin, pieces = min(verified_margin, float(margins.min())), pieces + 1
+                        continue
                     heapq.heappush(queue, Piece(bound, piece.start, mid))
                     heapq.heappush(queue, Piece(bound, mid, piece.end))
         return self.certificate(c, "verified", verified_margin, pieces, float("nan"))
