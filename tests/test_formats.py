@@ -114,6 +114,7 @@ def test_verify_refuses_missing_inputs_before_any_run(tmp_path):
     assert not (tmp_path / "mlflow.db").exists() or not store_runs(tmp_path)  # no run was opened
 
 
+@pytest.mark.slow
 def test_exported_instances_hold_every_image_of_their_piece_and_verify_back(tmp_path):
     """``task=export`` on a tiny model: the ONNX file computes the checkpoint's logits, every
     property's box holds the images rendered at poses of its piece, and ``task=verify`` answers

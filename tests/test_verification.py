@@ -186,7 +186,7 @@ def perturbed(model: nn.Module) -> nn.Module:
     [
         ("small_cnn", lambda: SmallCNN(6, 8), 0.003),
         ("resnet18", lambda: torchvision.models.resnet18(num_classes=6), 0.0005),
-        ("resnet50", lambda: torchvision.models.resnet50(num_classes=6), 0.0002),
+        pytest.param("resnet50", lambda: torchvision.models.resnet50(num_classes=6), 0.0002, marks=pytest.mark.slow),
     ],
 )
 def test_every_layer_of_our_architectures_is_bounded_soundly(name, build, width):
