@@ -276,6 +276,7 @@ def test_no_verified_interval_has_a_sampled_pose_classified_otherwise(axis, half
     assert {"verified", "falsified"} <= outcomes
 
 
+@pytest.mark.slow
 def test_every_logit_of_a_sampled_pose_lies_within_the_bounds_of_its_piece():
     """A convolutional classifier on the occluding scene: per piece, the logits of 500 sampled
     poses lie within the interval bounds of the piece's box pushed through the network, and
