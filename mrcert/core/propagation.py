@@ -97,6 +97,7 @@ class BoundNetwork:
             self.crown_neurons = int(crown_neurons)
             self.layers: list[Layer] = []
             self.output = -1
+            self._outputs: int | None = None
             self._build()
 
     # --- reading the graph ---------------------------------------------------------------------
@@ -318,7 +319,7 @@ class BoundNetwork:
         (``relaxation="interval"``) or the better of them and the backward relaxation (``"crown"``)
         for the margins interval bounds leave at most ``upto``."""
         b = len(low)
-        k = self.output_size(low)
+        k = self.output_size(low)  # the same at every call: a forward pass the first time only
         target = torch.as_tensor(target).expand(b).long()
         spec = -torch.eye(k, dtype=torch.float64).expand(b, k, k).clone()
         spec[torch.arange(b), :, target] += 1.0
@@ -327,8 +328,11 @@ class BoundNetwork:
         return result
 
     def output_size(self, low: torch.Tensor) -> int:
-        with torch.inference_mode(False), torch.no_grad():
-            return int(self.forward(low[:1].to(torch.float64)).shape[1])
+        """The number of logits (read from one forward pass of ``low``'s first box, once)."""
+        if self._outputs is None:
+            with torch.inference_mode(False), torch.no_grad():
+                self._outputs = int(self.forward(low[:1].to(torch.float64)).shape[1])
+        return self._outputs
 
     def linear_lower(self, low, high, spec: torch.Tensor, relaxation: str = "crown", upto: float = 0.0):
         """Lower bounds (B, S) of ``spec . y`` (``spec``: (B, S, K) or (S, K)) over each box of

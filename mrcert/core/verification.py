@@ -42,7 +42,6 @@ from mrcert.core.propagation import BoundNetwork
 from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.errors import ConfigError, MrcertError
 
-OUTCOMES = ("verified", "falsified", "unknown")
 SEARCH_STEPS = 8
 """Steps of the local search for a falsifying pose after the evenly sampled ones."""
 
@@ -343,6 +342,7 @@ def verify_box(
     spec = torch.tensor(np.array([-c for c, _ in rows]), dtype=torch.float64)
     offset = torch.tensor([d for _, d in rows], dtype=torch.float64, device=device)
     owner = np.repeat(np.arange(len(unsafe)), [len(conj) for conj in unsafe])
+    groups = [torch.from_numpy(owner == k).to(device) for k in range(len(unsafe))]  # each disjunct's rows
     forwards = 0
 
     def outputs(x: torch.Tensor) -> np.ndarray:
@@ -380,8 +380,7 @@ def verify_box(
         with torch.inference_mode(False), torch.enable_grad():
             y = network.forward(x)
             slack = y @ spec.to(device).T - offset  # -(c . y + d): > 0 where the conjunct fails
-            masks = [torch.from_numpy(owner == k).to(device) for k in range(len(unsafe))]
-            per = torch.stack([slack[:, m].max(1).values for m in masks], 1)
+            per = torch.stack([slack[:, m].max(1).values for m in groups], 1)
             (grad,) = torch.autograd.grad(per.min(), x)
         x = torch.minimum(torch.maximum(x.detach() - width * 0.25 * 0.8**step * grad.sign(), low), high)
         yx = outputs(x)
@@ -401,9 +400,7 @@ def verify_box(
         lo, hi = torch.cat([p[0] for p in part]), torch.cat([p[1] for p in part])
         bound = network.linear_lower(lo, hi, spec, relaxation) - offset  # > 0: the conjunct fails throughout
         boxes += len(part)
-        per = torch.stack(
-            [bound[:, torch.from_numpy(owner == k).to(bound.device)].max(1).values for k in range(len(unsafe))], 1
-        )
+        per = torch.stack([bound[:, rows_of].max(1).values for rows_of in groups], 1)
         margin = per.min(1).values.cpu().numpy()
         for j, m in enumerate(margin):
             if m > 0:
@@ -412,7 +409,7 @@ def verify_box(
             wide = (hi[j] - lo[j]).flatten()
             cost = wide
             if (wide > 0).any() and relaxation == "crown":  # split where width costs the bound most
-                weakest = torch.from_numpy(owner == int(per[j].argmin())).to(bound.device)
+                weakest = groups[int(per[j].argmin())]
                 row = int(torch.nonzero(weakest)[int(bound[j, weakest].argmax())])
                 weight = network.input_weights(lo[j : j + 1], hi[j : j + 1], spec[row : row + 1])[0, 0].flatten()
                 cost = wide * weight.abs() if (wide * weight.abs() > 0).any() else wide

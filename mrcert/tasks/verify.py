@@ -95,11 +95,11 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         for i in progress([i for i in range(len(todo)) if i not in done], "verify"):
             onnx_path, vnnlib_path, timeout = todo[i]
             start = time.perf_counter()
-            onnx_file = _plain(_existing(onnx_path), Path(scratch))
-            if onnx_file not in networks:
-                model = read_onnx(onnx_file).to(device)
-                networks[onnx_file] = (model, BoundNetwork(model))
-            model, network = networks[onnx_file]
+            source = _existing(onnx_path)
+            if source not in networks:  # a benchmark names one network in many instances: read it once
+                model = read_onnx(_plain(source, Path(scratch))).to(device)
+                networks[source] = (model, BoundNetwork(model))
+            model, network = networks[source]
             prop = read_vnnlib(_plain(_existing(vnnlib_path), Path(scratch)))
             shape = (1, *model.input_shape[1:])
             if prop.low.size != int(torch.tensor(shape).prod()):
