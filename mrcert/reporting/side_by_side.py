@@ -96,6 +96,29 @@ def _deterministic(log: pd.DataFrame) -> dict[str, float]:
     }
 
 
+def _beside(src: ExperimentCells, overrides, images: set, fixed: dict, noisy: bool, label, costs) -> list[dict]:
+    """The row (none if it has not run) of the finished certify run of ``overrides``, on the
+    pixel-wise run's ``images``: ``fixed`` (the interval's columns, the kind, the base model),
+    then ``label(cfg)`` as the method, its certified accuracy at the interval's half-width, the
+    base classifier's accuracy (``noisy``: a pixel-noise model) and ``costs(log, cfg)``."""
+    cell = src.index.cell(overrides)
+    whole = src.index.log(cell)
+    if whole is None:
+        return []
+    same = whole[whole["idx"].isin(images)]
+    row = {
+        "method": label(cell.cfg),
+        "frames": np.nan,
+        **_certified(same, fixed["half_width"]),
+        **_base_accuracy(src, cell.train_run, noisy),
+        **costs(same, cell.cfg),
+        "machine": _machine(src, cell.run_ids[0]),
+        "run_id": cell.run_ids[0],
+        "log": same,
+    }
+    return [fixed | row]
+
+
 def runs(
     src: ExperimentCells, experiment: str = EXPERIMENT, deterministic: tuple[str, ...] = DETERMINISTIC
 ) -> pd.DataFrame:
@@ -131,36 +154,19 @@ def runs(
             ("motion-augmented model", (), False),
             (noise, (f"model.trained_for={{name:pixelwise,sigma:{cfg.method.sigma}}}",), True),
         )
+        where = (
+            f"experiment={MOTION_EXPERIMENT}",
+            *head,
+            *of_motion,
+            f"motion={axis}",
+            f"model.variant={cfg.model.variant}",
+        )
         for trained, extra, noisy in own:
-            motion = src.index.cell(
-                (
-                    f"experiment={MOTION_EXPERIMENT}",
-                    *head,
-                    *of_motion,
-                    f"motion={axis}",
-                    f"model.variant={cfg.model.variant}",
-                    *extra,
-                )
-            )
-            motion_log = src.index.log(motion)
-            if motion_log is None:
-                continue
-            same = motion_log[motion_log["idx"].isin(images)]
-            rows.append(
-                common
-                | {
-                    "kind": "smoothed over motions",
-                    "method": f"motion smoothing (sigma {float(motion.cfg.motion.sigma):g} {unit(axis)})",
-                    "base model": trained,
-                    "frames": np.nan,
-                    **_certified(same, half_width),
-                    **_base_accuracy(src, motion.train_run, noisy),
-                    **_costs(same, int(motion.cfg.task.n)),
-                    "machine": _machine(src, motion.run_ids[0]),
-                    "run_id": motion.run_ids[0],
-                    "log": same,
-                }
-            )
+            rows += _beside(
+                src, (*where, *extra), images, common | {"kind": "smoothed over motions", "base model": trained}, noisy,
+                lambda c: f"motion smoothing (sigma {float(c.motion.sigma):g} {unit(str(c.motion.axis))})",
+                lambda same, c: _costs(same, int(c.task.n)),
+            )  # fmt: skip
         rows.append(
             common
             | {
@@ -179,38 +185,12 @@ def runs(
         )
         for trained, extra, noisy in own:  # the deterministic method on each base classifier
             chosen = extra or (f"model.trained_for={{name:{motion_method}}}",)
-            cell = src.index.cell(
-                (
-                    f"experiment={MOTION_EXPERIMENT}",
-                    *head,
-                    *of_motion,
-                    f"motion={axis}",
-                    f"model.variant={cfg.model.variant}",
-                    f"task.skip={int(cfg.task.skip)}",
-                    *deterministic,
-                    f"method.half_width={half_width}",
-                    *chosen,
-                )
-            )
-            bound_log = src.index.log(cell)
-            if bound_log is None:
-                continue
-            same = bound_log[bound_log["idx"].isin(images)]
-            rows.append(
-                common
-                | {
-                    "kind": "deterministic",
-                    "method": f"bound propagation ({cell.cfg.method.relaxation})",
-                    "base model": trained,
-                    "frames": np.nan,
-                    **_certified(same, half_width),
-                    **_base_accuracy(src, cell.train_run, noisy),
-                    **_deterministic(same),
-                    "machine": _machine(src, cell.run_ids[0]),
-                    "run_id": cell.run_ids[0],
-                    "log": same,
-                }
-            )
+            overrides = (f"task.skip={int(cfg.task.skip)}", *deterministic, f"method.half_width={half_width}", *chosen)
+            rows += _beside(
+                src, (*where, *overrides), images, common | {"kind": "deterministic", "base model": trained}, noisy,
+                lambda c: f"bound propagation ({c.method.relaxation})",
+                lambda same, c: _deterministic(same),
+            )  # fmt: skip
     return pd.DataFrame(rows)
 
 
