@@ -93,7 +93,8 @@ bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run 
 ui: $(STAMP) ## MLflow UI on the project's store, opened on the experiment's runs (PORT=... to change)
 	@$(PY) -c 'from mrcert.infra.experiment import ui_link_for; print("MLflow UI:", ui_link_for("$(abspath $(OUTPUTS))", "http://127.0.0.1:$(PORT)"))'
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow.db \
-	  --default-artifact-root $(abspath $(OUTPUTS))/mlartifacts --host 127.0.0.1 --port $(PORT)
+	  --default-artifact-root $(abspath $(OUTPUTS))/mlartifacts --artifacts-destination $(abspath $(OUTPUTS))/mlartifacts \
+	  --host 127.0.0.1 --port $(PORT)
 
 server: $(STAMP) ## MLflow tracking server on a local SQLite database (for tracking=server)
 	$(VENV)/bin/mlflow server --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow-server.db \

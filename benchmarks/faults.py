@@ -36,6 +36,7 @@ Usage: python benchmarks/faults.py [--kills 20] [--jobs 8] [--seed 0]
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import random
 import shutil
@@ -250,6 +251,108 @@ def hostile(work: Path, checkpoint: Path, reference, env: dict) -> dict[str, int
     return counts
 
 
+SEALED = [*TINY, "train.epochs=1", "train.batch_size=8"]
+SEALED_CERTIFY = [*SEALED, "task=certify", "task.n0=8", "task.n=40", "task.max=3", "task.skip=1"]
+
+
+def sealed(work: Path, env: dict, rng: random.Random) -> dict[str, int]:
+    """What a table shows against what its runs recorded; counts of what got through: forged
+    cells (a cell showing a log edited after its run, in its store or gathered into another),
+    substituted models (an evaluation that ran on a checkpoint swapped under its train run),
+    poisoned trainings (a model trained on a damaged image cache, or a damaged cache that stops
+    training), misleading poses accepted (a test pose twice, one pose with two labels, a test
+    pose that is a training pose), torn tables (a table file left other than a complete run
+    writes it, by a kill during ``task=tables``) and runs left RUNNING."""
+    import mlflow
+    import numpy as np
+    import open3d as o3d
+    import pandas as pd
+    import torch
+
+    from mrcert.reporting.cells import RunIndex
+    from mrcert.tasks.evaluation import run_images
+
+    counts = dict.fromkeys(("forged", "substituted", "poisoned", "poses", "torn", "running"), 0)
+
+    def certified(outputs: Path) -> float:
+        mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+        index = RunIndex.gather("mrcert", run_images)
+        return index.metric(index.cell([*SEALED_CERTIFY, f"paths.outputs={outputs}"]), "certified_accuracy")
+
+    def forge(log: Path) -> None:
+        df = pd.read_csv(log, sep="\t", dtype=str)
+        df["predict"], df["correct"], df["radius"] = df["label"], "1", "0.05"
+        df.to_csv(log, sep="\t", index=False)
+
+    store = work / "sealed"
+    finish([*SEALED, "task=train"], store, env)
+    finish(SEALED_CERTIFY, store, env)
+    honest = certified(store)
+    for log in [*store.glob("runs/certify/*/certify.tsv"), *(store / "mlartifacts").rglob("certify.tsv")]:
+        forge(log)
+    counts["forged"] += not np.isnan(certified(store)) and certified(store) != honest
+    other = work / "gathered"
+    finish(["task=gather", f"task.store={store}"], other, env)
+    counts["forged"] += not np.isnan(certified(other))
+    (best,) = (store / "mlartifacts").rglob("checkpoints/best.pt")
+    state = torch.load(best, weights_only=True)
+    state["model"] = {k: v + 1 if v.is_floating_point() else v for k, v in state["model"].items()}
+    torch.save(state, best)
+    proc = mrcert([*SEALED_CERTIFY, "task.n=41"], store, env)
+    proc.communicate()
+    counts["substituted"] += proc.returncode == 0
+    # The image cache: labels flipped, then images cut short; each training must match a clean store's.
+    clean, cache = work / "clean", work / "cache"
+    finish([*SEALED, "task=train", "seed=1"], clean, env)
+    finish([*SEALED, "task=train"], cache, env)
+    (labels,) = cache.glob("data/*-train-*/labels.npy")
+    np.save(labels, np.load(labels)[::-1].copy())
+    finish([*SEALED, "task=train", "seed=1"], cache, env)
+    a, b = (torch.load(next(o.glob("runs/train/*/last.pt")), weights_only=True)["model"] for o in (clean, cache))
+    counts["poisoned"] += not all(torch.equal(a[k], b[k]) for k in a)
+    (images,) = cache.glob("data/*-train-*/images.npy")
+    images.write_bytes(images.read_bytes()[:1000])
+    proc = mrcert([*SEALED, "task=train", "seed=2"], cache, env)
+    proc.communicate()
+    counts["poisoned"] += proc.returncode != 0
+    # Custom poses that mislead: a test pose twice, one pose with two labels, a test pose trained on.
+    cloud = work / "scene.ply"
+    points = np.random.default_rng(0).uniform(-1, 1, (500, 3)) + [0, 0, 3]
+    o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
+    here, there = np.eye(4).tolist(), (np.eye(4) + np.eye(4, k=3) * 0.1).tolist()
+    for k, first in enumerate((("test", "mug"), ("train", "can"), ("train", "mug"))):
+        poses = [{"split": first[0], "label": first[1], "pose": here}, {"split": "test", "label": "mug", "pose": here}]
+        poses.append({"split": "train", "label": "can", "pose": there})
+        path = work / f"poses-{k}.json"
+        path.write_text(json.dumps({"classes": ["mug", "can"], "poses": poses}))
+        proc = mrcert(["task=render", "data=custom", f"data.path={cloud}", f"data.poses={path}"], work / "poses", env)
+        proc.communicate()
+        counts["poses"] += proc.returncode == 0
+    # A kill during task=tables: every table file as a complete run writes it, or as it was.
+    tables = ["task=tables", "task.experiment=demo"]
+    finish(tables, store, env)
+    written = {p.name: p.read_bytes() for p in (store / "tables").iterdir() if p.suffix in (".md", ".csv", ".tex")}
+    for _ in range(3):
+        proc = mrcert(tables, store, env)
+        time.sleep(rng.uniform(1.0, 8.0))
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate()
+        now = {p.name: p.read_bytes() for p in (store / "tables").iterdir() if p.suffix in (".md", ".csv", ".tex")}
+        counts["torn"] += sum(now.get(name) != data for name, data in written.items())
+    finish(tables, store, env)
+    for outputs in (store, other, clean, cache):
+        counts["running"] += sum(r.info.status == "RUNNING" for r in outcome("certify", outputs)[2])
+    return counts
+
+
+def report_sealed(counts: dict[str, int]) -> None:
+    print(
+        f"{counts['forged']} forged cells, {counts['substituted']} substituted models, "
+        f"{counts['poisoned']} trainings on a damaged cache, {counts['poses']} misleading custom poses accepted, "
+        f"{counts['torn']} table files torn by a kill, {counts['running']} runs left RUNNING"
+    )
+
+
 def kill_time(rng: random.Random, duration: float) -> float:
     """A moment to kill a job whose uninterrupted run takes ``duration`` s: within its first
     70%, so that a resumed job, which has less left to do, is mostly still running."""
@@ -263,11 +366,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--keep", action="store_true", help="keep the work folder (printed) for inspection")
+    ap.add_argument("--sealed-only", action="store_true", help="only the trials of what tables show (sealed runs)")
     args = ap.parse_args()
     rng = random.Random(args.seed)
     env = os.environ | {"OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads)}
     work = Path(tempfile.mkdtemp(prefix="mrcert-faults-"))
     try:
+        if args.sealed_only:
+            report_sealed(sealed(work, env, rng))
+            return
         finish([*TRAIN, "train.epochs=1"], work / "model", env)
         (checkpoint,) = (work / "model").glob("runs/train/*/best.pt")
         jobs = {"train": TRAIN, "certify": certify(checkpoint)}
@@ -311,6 +418,7 @@ def main() -> None:
             f"{bad['non_finite']} non-finite models certified, {bad['calls']} arbitrary calls, "
             f"{bad['left']} runs left RUNNING or FAILED by a refusal"
         )
+        report_sealed(sealed(work, env, rng))
     finally:
         if args.keep:
             print(f"work folder kept: {work}")

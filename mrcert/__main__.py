@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra import config as mrcert_config
-from mrcert.infra.checkpoints import local_checkpoint, read_checkpoint
+from mrcert.infra.checkpoints import check_classes, local_checkpoint, read_checkpoint
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.key_migration import migrate_once
 from mrcert.infra.locks import key_lock
@@ -47,8 +47,11 @@ def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
         runs = LiveRuns(cfg.tracking)
         migrate_once(runs.client, cfg.tracking.experiment)  # a store keyed before models were named by content
     cfg, ident = resolve(cfg, runs)
-    if ident.train_run is not None:  # a train run's model (a file was checked with the other inputs)
-        read_checkpoint(local_checkpoint(str(cfg.model.checkpoint)))
+    if task.identity.needs_model and cfg.model.get("checkpoint"):  # verified against its train run's seal
+        from mrcert.data.sources import load
+
+        path = local_checkpoint(str(cfg.model.checkpoint))
+        check_classes(read_checkpoint(path), load(cfg.data).classes, path)
     return cfg, ident
 
 
@@ -79,13 +82,17 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     return result
 
 
-STORAGE_ERRORS = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT)
+PERMISSION_ERRORS = (errno.EACCES, errno.EPERM)
+STORAGE_ERRORS = (errno.EROFS, errno.ENOSPC, errno.EDQUOT)
 
 
 def _user_error(exc: BaseException) -> str | None:
     """The one-line message for an error the user can fix, else None (a bug: keep the traceback)."""
     if isinstance(exc, MrcertError):
         return str(exc)
+    if isinstance(exc, OSError) and exc.errno in PERMISSION_ERRORS:
+        where = f" {exc.filename}" if exc.filename else ""
+        return f"permission denied on{where} ({exc.strerror}): check its permissions, or point paths.outputs elsewhere"
     if isinstance(exc, OSError) and exc.errno in STORAGE_ERRORS:
         where = f" {exc.filename}" if exc.filename else ""
         return f"cannot write{where}: {exc.strerror}; free some space or point paths.outputs / MRCERT_OUTPUTS elsewhere"

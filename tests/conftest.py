@@ -49,6 +49,9 @@ def random_motions(rng: np.random.Generator, per_axis: int = 3) -> torch.Tensor:
 
 
 # A tiny quick MetaRoom (3 classes, coarse surfaces) and a tiny CNN: real runs in seconds.
+TINY_CLASSES = ["apple", "can", "mug"]
+"""The classes of the tiny data set, in its order (a model trained on it predicts these)."""
+
 TINY = [
     "data=metaroom_synth",
     "model=small_cnn",

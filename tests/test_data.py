@@ -342,10 +342,13 @@ def write_custom(tmp_path, points=None, colors=None, poses=None, dtype=np.float6
     cloud = tmp_path / "scan.ply"
     o3d.t.io.write_point_cloud(str(cloud), pcd)
     if poses is None:
-        pose = look_at_poses(30.0, 20.0, 0.0, 3.0)[0].tolist()
+        entries = [(s, c) for s in ("train", "test") for c in ("a", "b")]  # one view each: a yaw of its own
         poses = {
             "classes": ["a", "b"],
-            "poses": [{"split": s, "label": c, "pose": pose} for s in ("train", "test") for c in ("a", "b")],
+            "poses": [
+                {"split": s, "label": c, "pose": look_at_poses(30.0 + 5 * k, 20.0, 0.0, 3.0)[0].tolist()}
+                for k, (s, c) in enumerate(entries)
+            ],
         }
     path = tmp_path / "poses.json"
     path.write_text(json.dumps(poses))

@@ -21,6 +21,7 @@ from mrcert.reporting.certify_log import read_log
 from tests.conftest import (
     PER_RUN,
     ROOT,
+    TINY_CLASSES,
     certify_args,
     certify_logs,
     compose_cfg,
@@ -302,7 +303,7 @@ def test_a_checkpoint_of_another_model_config_is_named(checkpoints, tmp_path):
     from mrcert.infra.checkpoints import load_classifier
 
     with pytest.raises(MrcertError, match=r"trained with another model: model.net.width=8 \(checkpoint\) vs 16"):
-        load_classifier(cfg, 3, torch.device("cpu"))
+        load_classifier(cfg, TINY_CLASSES, torch.device("cpu"))
 
 
 def test_a_file_lock_is_exclusive_and_dies_with_its_process(tmp_path):

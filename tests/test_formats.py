@@ -135,7 +135,7 @@ def test_exported_instances_hold_every_image_of_their_piece_and_verify_back(tmp_
     cfg = compose_cfg(["task=certify", "method=bound_propagation", *common], tmp_path)
     ev = prepare(cfg)
     net = read_onnx(run / "model.onnx")
-    model = load_classifier(cfg, len(ev.bundle.classes), torch.device("cpu"))
+    model = load_classifier(cfg, ev.bundle.classes, torch.device("cpu"))
     for i in ev.indices:
         render = ev.samples[i].renderer()
         for piece, (start, end) in enumerate(((-0.001, 0.0), (0.0, 0.001))):

@@ -23,7 +23,7 @@ from mrcert.infra.tasks import TASKS
 from mrcert.reporting.certify_log import read_log
 from mrcert.reporting.metrics import summarize
 from mrcert.tasks.train import accuracy, as_tensors, evaluate
-from tests.conftest import PAPER_K, TINY, compose_cfg
+from tests.conftest import PAPER_K, TINY, TINY_CLASSES, compose_cfg
 
 H, W = 90, 160
 
@@ -206,7 +206,9 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     result = run_task(train, tmp_path / "t")
     # The model is selected and measured on images as it will see them: with pixel noise.
     bundle = load(train.data)
-    model = load_classifier(OmegaConf.merge(train, {"model": {"checkpoint": result["checkpoint"]}}), 3, "cpu")
+    model = load_classifier(
+        OmegaConf.merge(train, {"model": {"checkpoint": result["checkpoint"]}}), TINY_CLASSES, "cpu"
+    )
     test_x, test_y = as_tensors(bundle.test())
     assert accuracy(model, test_x, test_y, "cpu", 64, build_method(train)) == result["test_acc"]
     assert accuracy(model, test_x, test_y, "cpu", 64) == result["test_acc_clean"]  # and without the noise

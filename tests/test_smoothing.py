@@ -20,7 +20,7 @@ from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
 from mrcert.infra.runtime import render_batch
 from mrcert.reporting.certify_log import ResultLog, merge_logs, read_log
-from tests.conftest import PAPER_K, TINY, compose_cfg, kill_when, run_cli
+from tests.conftest import PAPER_K, TINY, TINY_CLASSES, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST_CERTIFY = ["task=certify", "task.n0=8", "task.n=40", "task.max=6", "task.batch_size=8"]
@@ -309,7 +309,7 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
 
     bundle = load(cfg.data)
     samples = bundle.samples(crop=CameraMotionSmoothing(("tz",), (0.1,)).crop_bound(6.0))
-    model = load_classifier(cfg, 3, "cpu")
+    model = load_classifier(cfg, TINY_CLASSES, "cpu")
     for _, row in rows.iterrows():
         sample = samples[int(row.idx)]
         smoothed = SmoothedClassifier(model, CameraMotionSmoothing(("tz",), (0.1,)), 3)
@@ -368,7 +368,7 @@ def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_predicti
 
     cfg = tiny_cfg([*FAST_CERTIFY, f"model.checkpoint={best(trained)}", f"motion={axis}"], tmp_path)
     bundle = load(cfg.data)
-    model = load_classifier(cfg, 3, torch.device("cpu"))
+    model = load_classifier(cfg, TINY_CLASSES, torch.device("cpu"))
     dist = CameraMotionSmoothing((axis,), (sigma,))
     samples = bundle.samples(crop=dist.crop_bound(6.0))
     flipped, abstained, decisive = 0, 0, 0

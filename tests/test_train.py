@@ -17,7 +17,7 @@ from mrcert.data.sources import load
 from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier, local_checkpoint
 from mrcert.tasks.train import as_tensors, better, evaluate
-from tests.conftest import TINY, compose_cfg, kill_when, run_cli
+from tests.conftest import TINY, TINY_CLASSES, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
 RECIPE = [*TINY, "train.batch_size=8", "train.lr=0.02"]
@@ -96,7 +96,7 @@ def test_checkpoint_lookup_finds_the_matching_run_and_names_the_command_when_non
         cfg = compose_cfg([*evaluation, f"model.variant={variant}"], tmp_path)
         path = find_checkpoint(cfg)
         assert torch.load(path, weights_only=True)["variant"] == variant
-        model = load_classifier(bind(cfg)[0], 3, torch.device("cpu"))
+        model = load_classifier(bind(cfg)[0], TINY_CLASSES, torch.device("cpu"))
         assert model(torch.rand(2, 3, 90, 160)).shape == (2, 3)
     # A vanilla model never saw a motion, so the tz run serves rx too; an augmented one does not.
     rx_vanilla = find_checkpoint(compose_cfg([*evaluation, "motion=rx"], tmp_path))
@@ -120,7 +120,7 @@ def test_checkpoint_lookup_finds_the_matching_run_and_names_the_command_when_non
     resnet = [o for o in evaluation if not o.startswith("model")] + ["model=resnet18", f"model.checkpoint={path}"]
     wrong = compose_cfg(resnet, tmp_path)
     with pytest.raises(MrcertError, match="holds a small_cnn for 3 classes, but model=resnet18"):
-        load_classifier(wrong, 3, torch.device("cpu"))
+        load_classifier(wrong, TINY_CLASSES, torch.device("cpu"))
 
 
 def test_model_selection_uses_the_validation_poses_and_never_reads_the_test_images(tmp_path, monkeypatch):

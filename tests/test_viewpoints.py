@@ -12,7 +12,7 @@ from mrcert.data.datasets import render_poses
 from mrcert.data.sources import load
 from mrcert.infra.checkpoints import load_classifier
 from mrcert.tasks.viewpoints import classify, midway, object_mask, object_share, occlusion
-from tests.conftest import TINY, compose_cfg, run_cli
+from tests.conftest import TINY, TINY_CLASSES, compose_cfg, run_cli
 
 SETTINGS = [*TINY, "train.epochs=4", "train.batch_size=8", "model.variant=vanilla"]
 
@@ -69,7 +69,7 @@ def test_every_cell_holds_every_class_at_every_yaw_and_the_metrics_count_its_row
         assert metrics[f"accuracy_pitch{p:g}_roll{r:g}"] == pytest.approx(cell.correct.mean())
         assert (cell.correct == (cell.predict == cell.label)).all()
     # Each row's prediction is the model's on a view rendered at that row's own angles.
-    bundle, model = load(cfg.data), load_classifier(bind(cfg)[0], 3, torch.device("cpu"))
+    bundle, model = load(cfg.data), load_classifier(bind(cfg)[0], TINY_CLASSES, torch.device("cpu"))
     for label, rows in log.groupby("label"):
         params = np.column_stack([rows[["yaw", "pitch", "roll"]].to_numpy(float), np.full(len(rows), 2.8)])
         images = render_poses(bundle.cloud(label), bundle.source.poses(params), bundle.K, 90, 160, 1.0)
@@ -129,7 +129,7 @@ def test_the_object_mask_is_the_pixels_the_object_covers(store):
 def test_occlusion_is_the_fall_of_the_class_probability_under_each_grey_square(store):
     out, _ = store
     cfg = bind(compose_cfg([*SETTINGS, "task=viewpoints"], out))[0]
-    model, cpu = load_classifier(cfg, 3, torch.device("cpu")), torch.device("cpu")
+    model, cpu = load_classifier(cfg, TINY_CLASSES, torch.device("cpu")), torch.device("cpu")
     grey = np.full((90, 160, 3), 128, np.uint8)
     # Covering grey with grey changes nothing (up to float rounding between batch sizes).
     assert np.abs(occlusion(model, grey, 0, 16, cpu, 16)).max() < 1e-6

@@ -22,6 +22,7 @@ YAML in ``conf/method/``; nothing in ``mrcert/infra/``, ``mrcert/tasks/`` or
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -193,6 +194,12 @@ class Method(ABC):
         ``radius`` (``motion.radius``): that radius, unless the method certifies a region of
         its own."""
         return radius
+
+    def largest_radius(self, n: int, alpha: float) -> float:
+        """The largest radius a certificate can hold when it drew ``n`` samples at level
+        ``alpha``: a logged radius beyond it was not computed by this method. A method that
+        certifies a region of its own reaches that region at most."""
+        return self.judged_at(math.inf)
 
     @abstractmethod
     def region(self) -> str:

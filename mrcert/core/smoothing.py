@@ -85,6 +85,10 @@ class CameraMotionSmoothing(Smoothing):
         z = float(norm.ppf(p_a_lower))
         return self.sigmas[0] * z if self.single else z
 
+    def largest_radius(self, n: int, alpha: float) -> float:
+        """The radius of n votes out of n: Clopper-Pearson's lower bound is then alpha^(1/n)."""
+        return self.radius(alpha ** (1.0 / n)) if n > 0 else 0.0
+
     def probability_for(self, radius: float) -> float:
         """The ``pA`` lower bound that :meth:`radius` turns into ``radius`` (inverse of it)."""
         return float(norm.cdf(radius / self.sigmas[0] if self.single else radius))

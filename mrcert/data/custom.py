@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from mrcert.data.datasets import PosedCloudData, Split, file_digest
+from mrcert.data.cache import file_digest
+from mrcert.data.datasets import PosedCloudData, Split
 from mrcert.errors import MrcertError
 from mrcert.scenes.scene import read_point_cloud
 
@@ -62,6 +63,7 @@ def read_poses(path: Path) -> tuple[list[str], dict[str, Split]]:
     if not isinstance(classes, list) or not classes or not isinstance(entries, list):
         raise MrcertError(f"poses file {str(path)!r} needs a non-empty 'classes' list and a 'poses' list")
     rows: dict[str, list[tuple[np.ndarray, int]]] = {s: [] for s in SPLITS}
+    seen: dict[bytes, tuple[int, str, str]] = {}  # a pose (rounded to 1e-9) -> its first entry
     for i, e in enumerate(entries):
         where = f"{path}: poses[{i}]"
         if not isinstance(e, dict):
@@ -70,7 +72,13 @@ def read_poses(path: Path) -> tuple[list[str], dict[str, Split]]:
             raise MrcertError(f"{where}: split {e.get('split')!r} is not allowed: {', '.join(SPLITS)}")
         if e.get("label") not in classes:
             raise MrcertError(f"{where}: label {e.get('label')!r} is not one of the classes {classes}")
-        rows[e["split"]].append((check_rigid(e.get("pose"), where), classes.index(e["label"])))
+        pose = check_rigid(e.get("pose"), where)
+        rows[e["split"]].append((pose, classes.index(e["label"])))
+        key = np.round(pose, 9).tobytes()
+        if key in seen:
+            _check_repeat(path, seen[key], (i, e["split"], e["label"]))
+        else:
+            seen[key] = (i, e["split"], e["label"])
     for s in ("train", "test"):
         if not rows[s]:
             raise MrcertError(f"poses file {str(path)!r} has no {s} poses")
@@ -80,6 +88,22 @@ def read_poses(path: Path) -> tuple[list[str], dict[str, Split]]:
         if r
     }
     return list(classes), splits
+
+
+def _check_repeat(path: Path, first: tuple[int, str, str], again: tuple[int, str, str]) -> None:
+    """Refuse a pose given twice where that makes the data wrong: with two labels (one view of
+    one scene is one class), twice among the test poses (an image counted twice), or as a test
+    pose and a training or validation pose (the classifier would be tested on what it saw)."""
+    (i, split_i, label_i), (j, split_j, label_j) = first, again
+    both = f"{path}: poses[{i}] and poses[{j}] are the same pose"
+    if label_i != label_j:
+        raise MrcertError(f"{both}, labelled {label_i!r} and {label_j!r}: one view has one label")
+    if split_i == split_j == "test":
+        raise MrcertError(f"{both}, twice among the test poses: give each test pose once")
+    if "test" in (split_i, split_j) and split_i != split_j:
+        raise MrcertError(
+            f"{both}, a {split_i} and a {split_j} pose: a test pose must not be one the model is trained or selected on"
+        )
 
 
 class CustomData(PosedCloudData):

@@ -9,7 +9,6 @@ provides (the sources themselves: :mod:`mrcert.data.sources`). A :class:`DataBun
 
 from __future__ import annotations
 
-import hashlib
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -216,11 +215,3 @@ class PosedCloudData(DataBundle):
             )
 
         return SampleSet(split.labels, make)
-
-
-def file_digest(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()

@@ -22,6 +22,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
+from mrcert.infra import seals
 
 BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
@@ -92,15 +93,33 @@ def selected_epoch(path: Path, model) -> int:
 
 
 def local_checkpoint(ref: str) -> Path:
-    """The local file of a bound ``model.checkpoint`` (downloaded from MLflow for a URI)."""
+    """The local file of a bound ``model.checkpoint``: for a ``runs:/`` URI downloaded from
+    MLflow and verified, byte for byte, against the checkpoint its run sealed (a one-line error
+    names the run and the file otherwise: a swapped file is never loaded under the run's name)."""
     if ":/" not in ref:
         return Path(ref)
     import mlflow
 
     try:
-        return Path(mlflow.artifacts.download_artifacts(artifact_uri=ref))
+        path = Path(mlflow.artifacts.download_artifacts(artifact_uri=ref))
+        run_id = ref[len("runs:/") :].split("/", 1)[0]
+        tags = mlflow.MlflowClient().get_run(run_id).data.tags
     except Exception as exc:  # missing artifact, unreachable store
         raise MrcertError(f"model.checkpoint={ref!r} cannot be fetched from MLflow: {exc}") from None
+    seals.verify(run_id, tags, path)
+    return path
+
+
+def check_classes(state: dict[str, Any], classes: list[str], path: Path | str) -> None:
+    """Refuse a checkpoint whose class names are not the data set's (a model of other objects)."""
+    saved = state.get("classes")
+    if saved is not None and list(saved) != list(classes):
+        differ = [f"{i}: {a!r} vs {b!r}" for i, (a, b) in enumerate(zip(saved, classes, strict=False)) if a != b]
+        raise MrcertError(
+            f"checkpoint {str(path)!r} was trained on classes {', '.join(map(str, saved[:4]))}... "
+            f"({len(saved)}), not this data set's {', '.join(map(str, classes[:4]))}... ({len(classes)})"
+            + (f": first difference {differ[0]}" if differ else "")
+        )
 
 
 REQUIRED_KEYS = ("model", "arch", "num_classes")
@@ -142,16 +161,18 @@ def _differences(saved: Any, wanted: Any, prefix: str) -> list[str]:
             for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]  # fmt: skip
 
 
-def load_classifier(cfg: DictConfig, num_classes: int, device):
+def load_classifier(cfg: DictConfig, classes: list[str], device):
     """The trained base classifier (``nn.Module``) of the bound ``cfg.model.checkpoint`` in eval
-    mode on ``device``. A checkpoint of another architecture, class count or ``model.net``
-    config is refused with a message naming both values."""
+    mode on ``device``. A checkpoint of other classes, another architecture, class count or
+    ``model.net`` config is refused with a message naming both values."""
     from omegaconf import OmegaConf
 
     from mrcert.core.models import build_model, for_inference
 
+    num_classes = len(classes)
     path = local_checkpoint(str(cfg.model.checkpoint))
     state = read_checkpoint(path)
+    check_classes(state, classes, path)
     if state.get("arch") != cfg.model.arch or state.get("num_classes") != num_classes:
         raise MrcertError(
             f"checkpoint {str(path)!r} holds a {state.get('arch')} for {state.get('num_classes')} "

@@ -13,6 +13,11 @@ keeps its keys and is counted. Its train run is the run of that id, or the copy 
 
 A store is migrated once (the experiment is then tagged :data:`KEY_SCHEME`); ``task=gather``
 migrates what it copies.
+
+Runs that finished before runs sealed their files (:mod:`mrcert.infra.seals`) are sealed once,
+as their files are when this version first opens the store (:func:`seal_finished`; the store
+is then tagged :data:`SEAL_SCHEME`, each such run ``mrcert.sealed_late``): from then on, a
+change to them is refused as to any other run's.
 """
 
 from __future__ import annotations
@@ -22,12 +27,17 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from mrcert.infra import seals
+from mrcert.infra.checkpoints import ARTIFACT_DIR
 from mrcert.infra.experiment import all_runs, artifact, read_run_config, run_file
 from mrcert.infra.identity import KEY_SCHEME, identify
 from mrcert.infra.log_keys import rekey
 from mrcert.infra.tasks import TASKS
 
 log = logging.getLogger(__name__)
+
+SEAL_SCHEME = ("mrcert.seal_scheme", "sealed")
+"""Tag of an experiment whose finished runs have all been sealed."""
 
 GATHERED = "mrcert.gathered_from"
 """Tag of a run ``task=gather`` copied: the id of the run it was copied from."""
@@ -97,10 +107,40 @@ def migrate(client, experiment_id: str) -> dict[str, int]:
     return counts
 
 
+def seal_finished(client, experiment_id: str) -> int:
+    """Seal every FINISHED task run of the experiment that finished without seals, as its
+    files now are; the number of runs sealed."""
+    sealed = 0
+    for run in all_runs(client, experiment_id, "attributes.status = 'FINISHED'"):
+        tags = run.data.tags
+        task = TASKS.get(tags.get("mrcert.task", ""))
+        if task is None or any(k.startswith(seals.PREFIX) for k in tags):
+            continue
+        found = {}
+        for name in seals.sealed_files(tags["mrcert.task"], task.log):
+            for path in (name, f"{ARTIFACT_DIR}/{name}"):
+                local = run_file(client, run.info.run_id, tags.get("mrcert.output_dir"), path)
+                if local is not None:
+                    found[seals.tag(name)] = seals.seal_file(local)
+                    break
+        if found:
+            for k, v in {**found, "mrcert.sealed_late": "true"}.items():
+                client.set_tag(run.info.run_id, k, v)
+            sealed += 1
+    if sealed:
+        log.info("seals: %d runs that finished before runs sealed their files sealed as they are now", sealed)
+    return sealed
+
+
 def migrate_once(client, experiment: str) -> None:
-    """Migrate the experiment named ``experiment`` unless it is tagged as migrated (then tag it)."""
+    """Migrate the experiment named ``experiment`` unless it is tagged as migrated (then tag
+    it), and seal its unsealed finished runs unless it is tagged as sealed."""
     exp = client.get_experiment_by_name(experiment)
-    if exp is None or exp.tags.get(KEY_SCHEME[0]) == KEY_SCHEME[1]:
+    if exp is None:
         return
-    migrate(client, exp.experiment_id)
-    client.set_experiment_tag(exp.experiment_id, *KEY_SCHEME)
+    if exp.tags.get(KEY_SCHEME[0]) != KEY_SCHEME[1]:
+        migrate(client, exp.experiment_id)
+        client.set_experiment_tag(exp.experiment_id, *KEY_SCHEME)
+    if exp.tags.get(SEAL_SCHEME[0]) != SEAL_SCHEME[1]:
+        seal_finished(client, exp.experiment_id)
+        client.set_experiment_tag(exp.experiment_id, *SEAL_SCHEME)

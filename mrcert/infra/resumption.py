@@ -37,6 +37,28 @@ def resumable(cfg: DictConfig, ident: RunIdentity):
     return None, None
 
 
+def close_stale(cfg: DictConfig, ident: RunIdentity, client, keep: str | None) -> int:
+    """Mark KILLED every RUNNING run of this run key (but ``keep``, the run being resumed) that no
+    live process holds: a process killed outright (SIGKILL, a lost machine) never closed it.
+    The number closed."""
+    closed = 0
+    for run in find_runs(cfg.tracking, ident.key, finished=False):
+        if run.info.status != "RUNNING" or run.info.run_id == keep:
+            continue
+        folder = Path(run.data.tags.get("mrcert.output_dir", ""))
+        lock = run_lock(folder)
+        if not folder.is_dir():  # its folder is gone: nothing can be working on it
+            client.set_terminated(run.info.run_id, "KILLED")
+            closed += 1
+        elif lock.acquire(blocking=False):
+            try:
+                client.set_terminated(run.info.run_id, "KILLED")
+                closed += 1
+            finally:
+                lock.release()
+    return closed
+
+
 def log_files_under(folder: Path) -> list[logging.FileHandler]:
     """The root logger's file handlers that write inside ``folder``."""
     folder = folder.resolve()

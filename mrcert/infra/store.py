@@ -82,7 +82,7 @@ def schema_head() -> str:
 def schema_version(db: Path) -> str | None:
     """The alembic revision stamped in a SQLite store, or None when it has none."""
     try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as conn:
+        with sqlite3.connect(f"file:{db}?mode=rw", uri=True) as conn:
             row = conn.execute("SELECT version_num FROM alembic_version").fetchone()
     except sqlite3.Error:
         return None
@@ -90,9 +90,11 @@ def schema_version(db: Path) -> str | None:
 
 
 def damage(db: Path) -> str | None:
-    """What SQLite's ``quick_check`` finds wrong in ``db`` (damaged pages), or None."""
+    """What SQLite's ``quick_check`` finds wrong in ``db`` (damaged pages), or None. Opened for
+    writing, as MLflow opens it: a process killed inside a transaction leaves a journal that
+    SQLite rolls back on opening (read-only, it could not, and would call the store damaged)."""
     try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as conn:
+        with sqlite3.connect(f"file:{db}?mode=rw", uri=True) as conn:
             found = [row[0] for row in conn.execute("PRAGMA quick_check")]
     except sqlite3.Error as exc:
         return str(exc)

@@ -9,9 +9,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,8 +23,9 @@ from mrcert.infra.config import plain
 from mrcert.infra.experiment import configure, ensure_experiment, find_runs, run_tags
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.locks import run_lock
-from mrcert.infra.resumption import adopt, resumable, timed_segment
+from mrcert.infra.resumption import adopt, close_stale, resumable, timed_segment
 from mrcert.infra.runtime import code_version, machine
+from mrcert.infra.seals import sealed_files, seals
 from mrcert.infra.sweeps import parent_info
 from mrcert.infra.tasks import TASKS
 
@@ -55,6 +56,8 @@ class Tracker:
     resumed: bool = False
     key: str | None = None
     """The run key: with the run id, who owns the per-image logs in ``output_dir``."""
+    tags: dict[str, str] = field(default_factory=dict)
+    """The run's tags when it began here (a resumed run's: the seals it recorded before)."""
 
     @property
     def owner(self) -> dict[str, str | None]:
@@ -75,6 +78,14 @@ class Tracker:
             import mlflow
 
             mlflow.set_tags(tags)
+
+    def record(self) -> Callable[[str, str], None] | None:
+        """What a per-image log records its seal through (None when tracking is off)."""
+        if not self.enabled:
+            return None
+        import mlflow
+
+        return mlflow.set_tag
 
     def log_figure(self, figure, artifact_file: str) -> None:
         """A matplotlib figure, shown by MLflow's UI with the run."""
@@ -144,6 +155,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
     mlflow = configure(cfg.tracking)
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
     previous, lock = resumable(cfg, ident)
+    close_stale(cfg, ident, mlflow.MlflowClient(), previous.info.run_id if previous is not None else None)
     if previous is not None:
         resumed = Path(previous.data.tags["mrcert.output_dir"])
         log.info("resuming MLflow run %s from %s", previous.info.run_id, resumed)
@@ -179,7 +191,10 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
             log.info("MLflow run %s in experiment %s at %s", run.info.run_id, experiment_id, cfg.tracking.uri)
             try:
                 with timed_segment(mlflow, previous):
-                    yield Tracker(output_dir, run.info.run_id, resumed=previous is not None, key=ident.key)
+                    earlier = dict(previous.data.tags) if previous is not None else {}
+                    yield Tracker(output_dir, run.info.run_id, previous is not None, ident.key, earlier)
+                task = TASKS[str(cfg.task.name)]
+                mlflow.set_tags(seals(output_dir, sealed_files(str(cfg.task.name), task.log)))
             except KeyboardInterrupt:
                 mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
                 raise

@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +25,9 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
+from mrcert.core.methods import build_method
 from mrcert.errors import MrcertError
+from mrcert.infra import seals
 from mrcert.infra.config import CONF_DIR
 from mrcert.infra.experiment import artifact, read_run_config, run_file
 from mrcert.infra.schema import SCHEMAS
@@ -117,16 +119,26 @@ def complete(runs: pd.DataFrame) -> tuple[list[pd.Series], str]:
     return [], "; ".join(notes)
 
 
-class RunIndex:
-    """The FINISHED runs of one MLflow experiment, indexed by run and cell key."""
+Images = Callable[[DictConfig], Mapping[int, int]]
+"""The test images a config's run covers (all its shards together), each with its label."""
 
-    def __init__(self, df: pd.DataFrame):
+
+class RunIndex:
+    """The FINISHED runs of one MLflow experiment, indexed by run and cell key.
+
+    A cell's per-image logs are read as their runs sealed them (:mod:`mrcert.infra.seals`) and
+    checked for sense: its images those of its config (``images``, when given), with their
+    labels, and no radius beyond what the method can certify with the samples a row drew. A
+    log that fails leaves the cell empty, with the reason as its note."""
+
+    def __init__(self, df: pd.DataFrame, images: Images | None = None):
         self.df = df
+        self.images = images
         self._cache: dict[tuple[str, ...], Cell] = {}
-        self._logs: dict[tuple[str, ...], pd.DataFrame | None] = {}
+        self._logs: dict[tuple[str, ...], pd.DataFrame | str] = {}
 
     @classmethod
-    def gather(cls, experiment: str) -> RunIndex:
+    def gather(cls, experiment: str, images: Images | None = None) -> RunIndex:
         import mlflow
 
         from mrcert.infra.key_migration import migrate_once
@@ -141,7 +153,7 @@ class RunIndex:
             if col not in df:
                 df[col] = None
         df = df[df[CELL].notna()] if len(df) else df
-        return cls(df.sort_values("start_time", ascending=False).reset_index(drop=True))
+        return cls(df.sort_values("start_time", ascending=False).reset_index(drop=True), images)
 
     # --- what the resolver reads (mrcert.infra.stages.TrainRuns) ------------------------------
     def newest_train_run(self, key: str) -> str | None:
@@ -198,16 +210,31 @@ class RunIndex:
 
     # --- values ---------------------------------------------------------------------------
     def log(self, cell: Cell) -> pd.DataFrame | None:
-        """The per-image log of a filled cell (its shards' logs merged), or None."""
+        """The per-image log of a filled cell (its shards' logs merged), or None (then the
+        cell's note says why: a log gone, changed since its run sealed it, or without sense)."""
         if not cell.filled:
             return None
         ids = tuple(cell.run_ids)
         if ids not in self._logs:
             task = TASKS[str(cell.runs[0]["tags.mrcert.task"])]
-            logs = [_run_log(r, task.log) for r in cell.runs]
-            merged = None if any(log is None for log in logs) else certify_log.concat_logs(logs)
+            try:
+                merged = certify_log.concat_logs([_run_log(r, task.log) for r in cell.runs])
+                self._check(merged, cell.cfg)
+            except MrcertError as exc:
+                merged = str(exc)
             self._logs[ids] = merged
-        return self._logs[ids]
+        found = self._logs[ids]
+        if isinstance(found, str):
+            cell.note = found
+            return None
+        return found
+
+    def _check(self, log: pd.DataFrame, cfg: DictConfig) -> None:
+        """Raise when ``log`` cannot be the result of ``cfg``'s run (:func:`problems`)."""
+        expected = self.images(cfg) if self.images is not None else None
+        found = problems(log, cfg, expected)
+        if found:
+            raise MrcertError(f"its log does not fit its config: {found}")
 
     def metric(self, cell: Cell, name: str) -> float:
         """Metric ``name`` of a cell, recomputed from its merged log (NaN when empty)."""
@@ -233,7 +260,39 @@ def _run_file(run: pd.Series, name: str) -> Path | None:
     return run_file(mlflow.MlflowClient(), str(run["run_id"]), folder if isinstance(folder, str) else None, name)
 
 
-def _run_log(run: pd.Series, name: str) -> pd.DataFrame | None:
-    """A run's per-image log, or None when it is gone."""
+def _run_log(run: pd.Series, name: str) -> pd.DataFrame:
+    """A run's per-image log, as the run sealed it; a one-line error when it is gone or changed."""
     path = _run_file(run, name)
-    return None if path is None else certify_log.read_log(path, ["idx"])
+    if path is None:
+        raise MrcertError(f"run {run['run_id']}'s {name} is gone")
+    tags = {c[len("tags.") :]: str(v) for c, v in run.items() if c.startswith("tags.") and pd.notna(v)}
+    seals.verify(str(run["run_id"]), tags, path, name)
+    return certify_log.read_log(path, ["idx"])
+
+
+def problems(log: pd.DataFrame, cfg: DictConfig, expected: Mapping[int, int] | None) -> str:
+    """What in a per-image log cannot come from a run of ``cfg`` ('' when nothing): an image
+    that is not one of the run's (``expected``: each with its label), a label that is not the
+    image's, a radius beyond the most the method certifies with the samples the row drew."""
+    if expected is not None:
+        idx = log["idx"].to_numpy()
+        strange = sorted(set(idx.tolist()) - set(expected))
+        if strange:
+            return f"images {strange[:5]} are not among the {len(expected)} its config covers"
+        if "label" in log.columns:
+            wrong = [int(i) for i, y in zip(idx, log["label"], strict=True) if int(y) != expected[int(i)]]
+            if wrong:
+                return f"images {wrong[:5]} are logged with labels that the data set does not give them"
+    if {"radius", "n"} <= set(log.columns) and "alpha" in cfg.task:
+        method = build_method(cfg)
+        alpha = float(cfg.task.alpha)
+        rows = log[pd.to_numeric(log["n"], errors="coerce").notna()]
+        limit = {n: method.largest_radius(int(n), alpha) for n in rows["n"].unique()}
+        beyond = rows[rows["radius"] > rows["n"].map(limit) * (1 + 1e-9) + 1e-12]
+        if len(beyond):
+            row = beyond.iloc[0]
+            return (
+                f"image {int(row['idx'])} has radius {row['radius']!r}, beyond the {limit[row['n']]!r} "
+                f"that n = {int(row['n'])} samples allow at alpha = {alpha}"
+            )
+    return ""

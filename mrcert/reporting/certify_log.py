@@ -13,7 +13,7 @@ import datetime
 import logging
 import os
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +21,7 @@ import pandas as pd
 
 from mrcert.errors import MrcertError
 from mrcert.infra.log_keys import CHECK, check_value, owner_path, read_owner, replace_text, write_owner
+from mrcert.infra.seals import seal_bytes, sealed_prefix, tag
 from mrcert.infra.tasks import CERTIFY_COLUMNS, TASKS
 
 log = logging.getLogger(__name__)
@@ -48,14 +49,28 @@ class ResultLog:
     taken back when its own run resumes there. Every row carries a check value bound to the run
     key (:func:`check_value`); on resume a row is adopted only when it has every column, its
     check value, an index of this run's images and that image's label. Any other row (a torn
-    write, a bad copy, a hand edit) is set aside with its reason and its image computed again."""
+    write, a bad copy, a hand edit) is set aside with its reason and its image computed again.
 
-    def __init__(self, path: Path, columns: list[str] = COLUMNS, owner: dict[str, str | None] | None = None):
+    A tracked run also seals its log as it writes it (``record``: after every row, the log's
+    length and sha256 into the run, :mod:`mrcert.infra.seals`); resumed, it adopts only the
+    rows within the seal the run last recorded (``recorded``): a log edited since, even with
+    check values made anew, is set aside whole (a run begun before logs were sealed recorded
+    none: its rows are checked as above)."""
+
+    def __init__(
+        self,
+        path: Path,
+        columns: list[str] = COLUMNS,
+        owner: dict[str, str | None] | None = None,
+        record: Callable[[str, str], None] | None = None,
+        recorded: str | None = None,
+    ):
         self.path = Path(path)
         self.columns = [c for c in columns if c != CHECK]
         self.owner = owner
         self.key = str((owner or {}).get("run_key") or "")
         self._claimed = owner is None
+        self.record, self.recorded = record, recorded
 
     @property
     def owner_path(self) -> Path:
@@ -103,16 +118,19 @@ class ResultLog:
         self._claim()
         if not self.path.exists():
             return set()
-        text = self.path.read_text()
+        data, rejected = self._sealed(self.path.read_bytes())
+        text = data.decode(errors="replace")
         lines = text.split("\n")[:-1]  # the text after the last newline: empty, or a line torn by a crash
         if not lines:
+            self._set_aside(rejected)
             self.path.write_text("")
+            self._seal()
             return set()
         header = lines[0].split("\t")
         own = header[:-1] if header[-1] == CHECK else header
         if own != self.columns[: len(own)]:
             raise MrcertError(f"{self.path} has header {lines[0]!r}, expected {' '.join([*self.columns, CHECK])}")
-        kept, rejected, seen = [], [], set()
+        kept, seen = [], set()
         for line in lines[1:]:
             cells = line.split("\t")
             reason = self._reason(cells, header, expected, seen)
@@ -123,19 +141,44 @@ class ResultLog:
             row = dict(zip(own, cells[:-1], strict=True))
             kept.append(self._line("\t".join(row.get(c, "") for c in self.columns)))
         rewritten = ["\t".join([*self.columns, CHECK]), *kept]
-        if rewritten != lines or not text.endswith("\n"):
-            if rejected:
-                aside = self._aside("rejected") / f"{self.path.stem}.rejected.tsv"
-                aside.write_text("\n".join(["reason\tline", *rejected]) + "\n")
-                log.warning(
-                    "%s: %d rows failed validation (first: %s); set aside to %s, their images are computed again",
-                    self.path,
-                    len(rejected),
-                    rejected[0].split("\t", 1)[0],
-                    aside,
-                )
+        if rewritten != lines or not text.endswith("\n") or len(data) < self.path.stat().st_size:
+            self._set_aside(rejected)
             replace_text(self.path, "\n".join(rewritten) + "\n")
+            self._seal()
         return seen
+
+    def _sealed(self, data: bytes) -> tuple[bytes, list[str]]:
+        """The part of the log ``data`` that this run sealed as it wrote it, and every other
+        complete line with its reason (all of ``data`` when the run is not tracked)."""
+        if self.record is None or self.recorded is None:  # untracked, or begun before runs sealed their logs
+            return data, []
+        head = sealed_prefix(self.recorded, data)
+        if head is None:
+            why = "not the log this run recorded as it wrote it"
+            head = data[: data.find(b"\n") + 1]  # the header: checked as ever
+        else:
+            why = "written after this run last recorded its log"
+        rest = data[len(head) :].decode(errors="replace").split("\n")[:-1]  # a torn last line: dropped as ever
+        return head, [f"{why}\t{line}" for line in rest if line]
+
+    def _set_aside(self, rejected: list[str]) -> None:
+        if not rejected:
+            return
+        aside = self._aside("rejected") / f"{self.path.stem}.rejected.tsv"
+        aside.write_text("\n".join(["reason\tline", *rejected]) + "\n")
+        log.warning(
+            "%s: %d rows failed validation (first: %s); set aside to %s, their images are computed again",
+            self.path,
+            len(rejected),
+            rejected[0].split("\t", 1)[0],
+            aside,
+        )
+
+    def _seal(self) -> None:
+        """Record the log as it now is in the run (a tracked run only)."""
+        if self.record is not None:
+            self.recorded = seal_bytes(self.path.read_bytes())
+            self.record(tag(self.path.name), self.recorded)
 
     def _reason(self, cells: list[str], header: list[str], expected: Mapping[int, int] | None, seen: set[int]) -> str:
         """Why a row cannot be adopted ('' when it can)."""
@@ -170,6 +213,7 @@ class ResultLog:
                 f.write("\t".join([*self.columns, CHECK]) + "\n")
             f.write(self._line(format_row(row, self.columns)) + "\n")
             f.flush()
+        self._seal()
 
 
 SET_ASIDE = "set_aside"

@@ -3,14 +3,16 @@ trained classifier, the certification method bound to it, and a resumable per-im
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from mrcert.core.method import BaseClassifier, Certifier, Method, Render
 from mrcert.core.methods import build_method
@@ -22,6 +24,7 @@ from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import batch_size, render_batch, resolve_device
+from mrcert.infra.seals import tag
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting.certify_log import ResultLog, read_log
@@ -34,6 +37,19 @@ def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards
         raise MrcertError(f"task.shard={shard} is not allowed: an integer in [0, task.num_shards={num_shards})")
     chosen = list(range(0, total, skip))[: limit if limit is not None else None]
     return chosen[shard::num_shards]
+
+
+def run_images(cfg: DictConfig) -> dict[int, int]:
+    """The test images a run of ``cfg`` covers (all its shards together), each with its label
+    in the data set: what a table checks a run's log against."""
+    labels = _test_labels(OmegaConf.to_yaml(cfg.data))
+    t = cfg.task
+    return {i: int(labels[i]) for i in job_indices(len(labels), int(t.get("skip", 1)), t.get("max"), 0, 1)}
+
+
+@functools.cache
+def _test_labels(data: str) -> np.ndarray:
+    return np.asarray(load(OmegaConf.create(data)).samples().labels)
 
 
 @dataclass
@@ -72,7 +88,7 @@ def prepare(cfg: DictConfig) -> Evaluation:
     if cfg.data.get("downsample"):
         downsampling = (int(cfg.motion.downsample.every_k), float(cfg.motion.downsample.voxel))
     samples = bundle.samples(downsampling=downsampling, crop=method.crop_bound(float(t.crop_sigmas)))
-    model = load_classifier(cfg, len(bundle.classes), device)
+    model = load_classifier(cfg, bundle.classes, device)
     indices = job_indices(len(samples), int(t.skip), t.get("max"), int(t.shard), int(t.num_shards))
     overlap = device.type == "cuda"  # rendering beside the model pays off when it runs on a GPU
     batch = batch_size(t.batch_size, device)
@@ -85,7 +101,10 @@ def result_log(ctx: RunContext, task: str, extra: tuple[str, ...] = ()) -> Resul
     """The per-image log of ``task`` (its name and columns from the task table, then ``extra``:
     a method's own columns) in the run's folder, owned by this run (rows of any other run found
     there are set aside, never adopted)."""
-    return ResultLog(ctx.output_dir / TASKS[task].log, [*TASKS[task].columns, *extra], owner=ctx.tracker.owner)
+    name = TASKS[task].log
+    recorded = ctx.tracker.tags.get(tag(name))
+    columns = [*TASKS[task].columns, *extra]
+    return ResultLog(ctx.output_dir / name, columns, ctx.tracker.owner, ctx.tracker.record(), recorded)
 
 
 def summarize(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[str, float]:

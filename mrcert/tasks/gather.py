@@ -12,7 +12,8 @@ deleted and made again. The one id a copy does not keep as it is, is MLflow's ow
 parent run (``mlflow.parentRunId``), pointed at the parent's copy so that the sweep nests as it
 did there. Runs from a store written before models were named by content are migrated once
 copied (:mod:`mrcert.infra.key_migration`); one whose keys cannot be recomputed keeps them and
-is counted in ``kept_keys``.
+is counted in ``kept_keys``. A run whose sealed files (:mod:`mrcert.infra.seals`) are not what it
+sealed is not copied at all: one line names it and the file, and it is counted in ``refused``.
 
 A store moved after its runs were made (copied off the machine that made them) is read from
 its folder: a run's artifacts are taken from ``<source>/mlartifacts/<run id>/artifacts`` when
@@ -29,8 +30,9 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
+from mrcert.infra import seals
 from mrcert.infra.experiment import all_runs, ensure_experiment
-from mrcert.infra.key_migration import GATHERED, migrate
+from mrcert.infra.key_migration import GATHERED, migrate, seal_finished
 from mrcert.infra.tracking import RunContext
 
 BATCH = 100  # MLflow's log_batch takes at most 100 params or tags and 1000 metrics per call
@@ -79,9 +81,23 @@ def _artifacts(client, run, folder: Path | None, into: Path) -> bool:
         return False
 
 
-def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str, str]) -> int:
-    """One run copied into ``dst``, FINISHED last; its new id recorded in ``ids``. 1 when its
-    artifacts are gone, else 0."""
+def _refusal(run, files: Path) -> str | None:
+    """Why a source run's artifacts (copied into ``files``) are not what the run sealed, or None."""
+    for name in (k[len(seals.PREFIX) :] for k in run.data.tags if k.startswith(seals.PREFIX)):
+        found = sorted(files.rglob(name))
+        try:
+            if not found:
+                raise MrcertError(f"run {run.info.run_id}'s {name} is missing from its artifacts")
+            seals.verify(run.info.run_id, run.data.tags, found[0])
+        except MrcertError as exc:
+            return str(exc)
+    return None
+
+
+def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str, str]) -> str:
+    """One run copied into ``dst``, FINISHED last; its new id recorded in ``ids``. Returns
+    ``copied``, ``without_artifacts`` (they are gone), or why it was refused (a sealed file
+    that is not what its run sealed: nothing of it is copied)."""
     from mlflow.entities import Metric, Param, RunTag
 
     source_id = run.info.run_id
@@ -90,14 +106,17 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
     parent = tags.get("mlflow.parentRunId")
     if parent in ids:
         tags["mlflow.parentRunId"] = ids[parent]
-    # Made with no key: until its end a half-made copy is nothing a task could resume or a table read.
-    new = dst.create_run(
-        experiment_id, start_time=run.info.start_time, tags={GATHERED: source_id}, run_name=run.info.run_name
-    )
-    new_id = new.info.run_id
     with tempfile.TemporaryDirectory() as tmp:
         files = Path(tmp)
-        lost = int(not _artifacts(src, run, folder, files) and "mrcert.task" in tags)  # a task run logs its config
+        lost = not _artifacts(src, run, folder, files) and "mrcert.task" in tags  # a task run logs its config
+        refused = None if lost else _refusal(run, files)
+        if refused:
+            return refused
+        # Made with no key: until its end a half-made copy is nothing a task could resume or a table read.
+        new = dst.create_run(
+            experiment_id, start_time=run.info.start_time, tags={GATHERED: source_id}, run_name=run.info.run_name
+        )
+        new_id = new.info.run_id
         params = [Param(k, v) for k, v in run.data.params.items()]
         new_tags = [RunTag(k, v) for k, v in tags.items() if v != new.data.tags.get(k)]
         metrics = [
@@ -117,7 +136,7 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
             dst.log_artifacts(new_id, str(files))
     dst.set_terminated(new_id, "FINISHED", end_time=run.info.end_time)
     ids[source_id] = new_id
-    return lost
+    return "without_artifacts" if lost else "copied"
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -139,20 +158,27 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             ids[origin] = r.info.run_id
         elif origin:  # a copy a kill left unfinished: made again below
             dst.delete_run(r.info.run_id)
-    totals = {"gathered": 0, "already_here": 0, "without_artifacts": 0, "kept_keys": 0}
+    totals = {"gathered": 0, "already_here": 0, "without_artifacts": 0, "kept_keys": 0, "refused": 0}
     for r in _finished_runs(src, exp.experiment_id):
         if r.info.run_id in ids or r.info.run_id in here:
             ids.setdefault(r.info.run_id, r.info.run_id)
             totals["already_here"] += 1
             continue
-        totals["without_artifacts"] += _copy(src, dst, r, experiment_id, folder, ids)
-        totals["gathered"] += 1
-    if totals["gathered"]:  # copies from a store written before models were named by content
+        outcome = _copy(src, dst, r, experiment_id, folder, ids)
+        if outcome in ("copied", "without_artifacts"):
+            totals["gathered"] += 1
+            totals["without_artifacts"] += outcome == "without_artifacts"
+        else:
+            totals["refused"] += 1
+            print(f"not gathered: {outcome}")
+    if totals["gathered"]:  # copies from a store written before models were named by content, or sealed
         totals["kept_keys"] = migrate(dst, experiment_id)["kept"]
+        seal_finished(dst, experiment_id)
     print(
         f"Gathered {totals['gathered']} runs from {uri} ({totals['already_here']} already here"
         + (f"; {totals['without_artifacts']} without artifacts" if totals["without_artifacts"] else "")
         + (f"; {totals['kept_keys']} kept their keys" if totals["kept_keys"] else "")
+        + (f"; {totals['refused']} refused: their files are not what they sealed" if totals["refused"] else "")
         + ")"
     )
     return {k: float(v) for k, v in totals.items()}

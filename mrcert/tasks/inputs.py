@@ -1,13 +1,14 @@
 """Every file a run reads, checked before the run exists.
 
-A missing or unreadable checkpoint, point cloud, poses file or imported log stops the command
-in seconds with one line naming the key and the file, before any data is prepared and before
-an MLflow run is created (so no FAILED run is left behind). The keys checked are the ones a
-task's identity declares as files (:class:`mrcert.infra.identity.Identity`).
+A missing, unreadable or not regular (a folder, a device) checkpoint, point cloud, poses file
+or imported log stops the command in seconds with one line naming the key and the file,
+before any data is prepared and before an MLflow run is created (so no FAILED run is left
+behind). The keys checked are the ones a task's identity declares as files (:class:`mrcert.infra.identity.Identity`).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -64,6 +65,10 @@ CHECKS: dict[str, Callable[[Path], None]] = {
 }
 
 
+FOLDERS = ("task.store",)
+"""The file inputs that are folders (another store's outputs folder, or a tracking URI)."""
+
+
 def check_classes(data: DictConfig) -> None:
     """Raise a one-line :class:`MrcertError` naming any ``data.classes`` entry a synthetic data
     set does not have (a released or custom data set's classes come from its files, which are
@@ -90,4 +95,12 @@ def check_inputs(cfg: DictConfig, identity: Identity) -> None:
         path = Path(str(value))
         if not path.exists():
             raise MrcertError(f"{key}={str(value)!r} does not exist")
+        folder = key == "data.path" and cfg.data.get("source") == "metaroom"  # the released data set's folder
+        if key in FOLDERS:
+            pass
+        elif not (path.is_dir() if folder else path.is_file()):
+            kind = "a regular file" if not folder else "the released data set's folder"
+            raise MrcertError(f"{key}={str(value)!r} is not {kind}: give {kind}")
+        if not os.access(path, os.R_OK):
+            raise MrcertError(f"{key}={str(value)!r} cannot be read: permission denied (check its permissions)")
         CHECKS.get(key, lambda p: None)(path)

@@ -4,6 +4,11 @@ each table, ``<table>_sources.csv`` / ``.md`` name the run behind every cell."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +32,7 @@ from mrcert.reporting.overview import method_figure
 from mrcert.reporting.plots import save
 from mrcert.reporting.results_page import PAPER_ARCH, base_models, jobs_of, write_page
 from mrcert.reporting.writers import as_text, markdown, write
+from mrcert.tasks.evaluation import run_images
 
 CERTIFY_TASKS = ("certify", "import")
 
@@ -40,11 +46,12 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     configure(cfg.tracking)
     experiment_id = ensure_experiment(cfg.tracking)
     named = named_data()
+    outputs = Path(cfg.paths.outputs).resolve()  # the cells' data is cached where this run writes
     src = ExperimentCells(
-        RunIndex.gather(cfg.tracking.experiment),
+        RunIndex.gather(cfg.tracking.experiment, run_images),
         profile=str(t.profile),
         experiment=t.experiment,
-        overrides=tuple(t.overrides) + ((f"data={named}",) if named else ()),
+        overrides=(*t.overrides, *((f"data={named}",) if named else ()), f"paths.outputs={outputs}"),
         archs=tuple(t.archs) if t.archs else None,
         axes=tuple(t.axes) if t.axes else None,
         certify_task=str(t.certify_task),
@@ -57,7 +64,18 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         names = ", ".join(table.name for table in tables.TABLES)
         raise MrcertError(f"task.print={t.print!r} is not allowed: one of {names}")
     out = Path(t.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    page = Path(t.page) if t.page else None
+    with staged([out, *([page.parent] if page else [])]) as stages:
+        metrics = write_all(ctx, src, built, stages[0], stages[-1] / page.name if page else None, t)
+    if page:
+        print(f"\nEvidence page: {page.resolve()}")
+    report(cfg, src, built, out)
+    return metrics | {"tables": str(out.resolve())}
+
+
+def write_all(ctx: RunContext, src: ExperimentCells, built: dict, out: Path, page: Path | None, t) -> dict[str, float]:
+    """Every table, its sources, the figures and the page (when ``page``) written into ``out``;
+    the tables' filled cells, for the run's metrics."""
     metrics: dict[str, float] = {}
     for name, (df, caption) in built.items():
         paths = write(df, out / name, caption)
@@ -77,17 +95,21 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     overview = method_overview(src, out / "method_overview.png")
     if overview is not None:
         ctx.tracker.log_artifact(overview, "tables")
-    if t.page:
+    if page is not None:
         table = tables.TABLE3_SEQUENTIAL.build(src, show_paper=True, name="page", paper_arch=PAPER_ARCH)
         chosen = f" task.experiment={t.experiment}" if t.experiment else ""
         command = f"mrcert task=tables profile={t.profile}{chosen} task.page={t.page}"
-        page, experiment = Path(t.page), src.experiment_for(tables.REPRODUCTION)
+        experiment = src.experiment_for(tables.REPRODUCTION)
         cells = [c for _, c in src.rows(experiment, tables.SMOOTHED_BENIGN)]
         views = nearest_views(cells[0].cfg.data, page.with_name(f"{page.stem}_views.png")) if cells else None
-        page = write_page(src, experiment, table, figure, page, command, views)
-        ctx.tracker.log_artifact(page, "tables")
-        print(f"\nEvidence page: {page.resolve()}")
+        ctx.tracker.log_artifact(write_page(src, experiment, table, figure, page, command, views), "tables")
     ctx.tracker.log_metrics(metrics)
+    return metrics
+
+
+def report(cfg: DictConfig, src: ExperimentCells, built: dict, out: Path) -> None:
+    """What the tables run prints: the table asked for, its base classifiers, why cells are empty."""
+    t = cfg.task
     if t.print in built:
         print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
         print(markdown(as_text(built[t.print][0])))
@@ -108,7 +130,25 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         f"\nTables, figure and the runs behind each cell: {out.resolve()}\n"
         f"MLflow: make ui  (or: mlflow ui --backend-store-uri {cfg.tracking.uri})"
     )
-    return metrics | {"tables": str(out.resolve())}
+
+
+@contextmanager
+def staged(folders: list[Path]) -> Iterator[list[Path]]:
+    """A temporary folder beside each of ``folders``; once the body has written every file, the
+    files are moved into their folders (each move atomic), so that a run killed while writing
+    leaves the last complete tables and page as they were, never a table half written."""
+    stages = []
+    try:
+        for folder in folders:
+            folder.mkdir(parents=True, exist_ok=True)
+            stages.append(Path(tempfile.mkdtemp(prefix=f".{folder.name}-writing-", dir=folder.parent)))
+        yield stages
+        for stage, folder in zip(stages, folders, strict=True):
+            for path in sorted(stage.iterdir(), key=lambda p: p.suffix == ".md"):  # a page after its pictures
+                os.replace(path, folder / path.name)
+    finally:
+        for stage in stages:
+            shutil.rmtree(stage, ignore_errors=True)
 
 
 def method_overview(src: ExperimentCells, path: Path) -> Path | None:

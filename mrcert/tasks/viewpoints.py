@@ -110,7 +110,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     parts = tuple(str(p) for p in t.surroundings)
     bundle.source.only(parts)  # an unknown part stops here, before anything is rendered
     device = resolve_device(cfg.device)
-    model = load_classifier(cfg, len(bundle.classes), device)
+    model = load_classifier(cfg, bundle.classes, device)
     test = bundle.split("test")
     yaws = [float(y) for y in t.yaws] if t.yaws is not None else midway(test.params[:, 0])
     distance = float(t.distance) if t.distance is not None else float(np.median(test.params[:, 3]))
