@@ -284,6 +284,13 @@ def sealed(work: Path, env: dict, rng: random.Random) -> dict[str, int]:
         df["predict"], df["correct"], df["radius"] = df["label"], "1", "0.05"
         df.to_csv(log, sep="\t", index=False)
 
+    def seeded(outputs: Path, seed: str) -> Path:
+        mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+        (run,) = mlflow.search_runs(
+            search_all_experiments=True, filter_string=f"params.seed = '{seed}'", output_format="list"
+        )
+        return Path(run.data.tags["mrcert.output_dir"])
+
     store = work / "sealed"
     finish([*SEALED, "task=train"], store, env)
     finish(SEALED_CERTIFY, store, env)
@@ -308,7 +315,7 @@ def sealed(work: Path, env: dict, rng: random.Random) -> dict[str, int]:
     (labels,) = cache.glob("data/*-train-*/labels.npy")
     np.save(labels, np.load(labels)[::-1].copy())
     finish([*SEALED, "task=train", "seed=1"], cache, env)
-    a, b = (torch.load(next(o.glob("runs/train/*/last.pt")), weights_only=True)["model"] for o in (clean, cache))
+    a, b = (torch.load(seeded(o, "1") / "last.pt", weights_only=True)["model"] for o in (clean, cache))
     counts["poisoned"] += not all(torch.equal(a[k], b[k]) for k in a)
     (images,) = cache.glob("data/*-train-*/images.npy")
     images.write_bytes(images.read_bytes()[:1000])
@@ -341,7 +348,9 @@ def sealed(work: Path, env: dict, rng: random.Random) -> dict[str, int]:
         counts["torn"] += sum(now.get(name) != data for name, data in written.items())
     finish(tables, store, env)
     for outputs in (store, other, clean, cache):
-        counts["running"] += sum(r.info.status == "RUNNING" for r in outcome("certify", outputs)[2])
+        mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
+        runs = mlflow.search_runs(search_all_experiments=True, output_format="list")
+        counts["running"] += sum(r.info.status == "RUNNING" for r in runs)
     return counts
 
 

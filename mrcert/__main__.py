@@ -37,6 +37,21 @@ OmegaConf.register_new_resolver(
 )
 
 
+def groups_help() -> str:
+    """The config groups a user picks, with their options (``group: a, b``): the folders of
+    ``conf/`` but Hydra's own, the schemas (``schema/*``) and the blocks options include
+    (``task/evaluation``, ``data/camera``)."""
+    conf = mrcert_config.CONF_DIR
+    return "\n".join(
+        f"{g.name}: {', '.join(sorted(p.stem for p in g.glob('*.yaml')))}"
+        for g in sorted(conf.iterdir())
+        if g.is_dir() and g.name != "hydra"
+    )
+
+
+OmegaConf.register_new_resolver("mrcert_groups_help", groups_help, replace=True)
+
+
 def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
     """``cfg`` bound to its inputs (the one checkpoint an evaluation uses) and its run identity.
     Every file input is checked here, before any data is prepared or any run is created."""

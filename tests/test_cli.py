@@ -192,6 +192,10 @@ def test_help_lists_the_tasks(tmp_path):
     tasks = out.split("Tasks:")[1]
     for name in ("render", "train", "certify", "smooth", "attack", "tables", "import", "gather", "verify", "export"):
         assert f"\n  {name} " in tasks
+    groups = out.split("== Config groups ==")[1].split("== Config ==")[0]  # only what a user picks
+    assert "model: resnet18, resnet50, small_cnn" in groups and not any(
+        g in groups for g in ("schema/", "/evaluation", "/camera")
+    )
 
 
 def test_tracking_off_still_writes_outputs(tmp_path):

@@ -84,3 +84,54 @@ def test_the_development_vocabulary_check_catches_what_it_names(tmp_path):
     page = tmp_path / "page.md"
     page.write_text("\n".join(caught + kept))
     assert [line.split(": ", 1)[1] for line in development_lines([page], tmp_path)] == caught
+
+
+def page_table(page: str, heading: str) -> list[list[str]]:
+    """The rows of the first Markdown table under ``## heading`` of a page (cells stripped)."""
+    section = page.split(f"## {heading}\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("|")]
+    return [[c.strip() for c in row.strip("|").split("|")] for row in rows[2:]]
+
+
+def test_the_readme_quotes_the_evidence_page_exactly():
+    """Every figure of the README that comes from the reproduction's runs is the page's: the key
+    table (certified accuracy at r = sigma, ours and the paper's), the base models' test range,
+    the paper's base range and the reproduction's run time."""
+    readme, page = (ROOT / "README.md").read_text(), (ROOT / "docs" / "results.md").read_text()
+    prose = " ".join(readme.split())
+    certified = {}
+    for row in page_table(page, "Table 3, ours (paper)"):
+        axis, variant = row[0].lower(), row[1].split()[1].lower()
+        certified[(axis, variant)] = row[4]
+    key = re.search(r"\| axis \|[^\n]*\n\|[-| ]+\|\n((?:\|[^\n]*\n)+)", readme)
+    quoted = {}
+    for line in key.group(1).splitlines():
+        axis, vanilla, augmented = (c.strip() for c in line.strip("|").split("|"))
+        quoted[(axis, "vanilla")], quoted[(axis, "augmented")] = vanilla, augmented
+    assert quoted == certified and len(quoted) == 12
+    tests = [float(r[2]) for r in page_table(page, "The base models")]
+    assert f"{min(tests):.2f}-{max(tests):.2f} on the 120 test views" in prose
+    paper = re.search(r"the paper's base ResNet-18 models: (\d\.\d+) to (\d\.\d+)", page).groups()
+    assert f"(the paper's base ResNet-18s: {paper[0]}-{paper[1]})" in prose
+    hours = float(next(r for r in page_table(page, "Time per stage") if r[0] == "every stage")[4])
+    assert f"{hours:.1f} hours of run time on 2 CPU cores" in prose
+
+
+def test_docs_tasks_names_every_task_group_option_and_task_setting():
+    """docs/tasks.md against the task registry and conf/: a row per task, every option of every
+    config group a user picks, and every setting of every task (as ``task.<key>``)."""
+    import yaml
+
+    from mrcert.infra.tasks import TASKS
+
+    doc = (ROOT / "docs" / "tasks.md").read_text()
+    assert [t for t in TASKS if f"| `{t}` |" not in doc] == []
+    conf = ROOT / "conf"
+    groups = [g for g in conf.iterdir() if g.is_dir() and g.name not in ("hydra", "task")]
+    options = [f"{g.name}={p.stem}" for g in groups for p in g.glob("*.yaml")]
+    assert [o for o in options if f"`{o.split('=')[1]}`" not in doc and o not in doc] == []
+    settings = []
+    for path in (conf / "task").rglob("*.yaml"):  # with the evaluation tasks' shared settings
+        keys = yaml.safe_load(path.read_text()) or {}
+        settings += [f"task.{k}" for k in keys if k not in ("defaults", "name")]
+    assert sorted({s for s in settings if s not in doc}) == []

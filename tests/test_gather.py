@@ -55,8 +55,10 @@ def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_
     assert (section["n"], section["alpha"], section["images"]) == (200, 0.01, len(clog))
     assert f"| certify | 1 | {len(clog)} |" in times and f"| {machine()} (1 run) |" in times
     assert "| train | 1 |" in times and "| smooth |" not in times  # stages that did not run are left out
-    # A store without paper-profile runs gets no section.
-    assert results_page.paper_profile_section(index(gpu_store.parent / "nothing-here")) is None
+    # A store without paper-profile runs gets a section that says how many jobs it lacks.
+    empty = results_page.paper_profile_section(index(gpu_store.parent / "nothing-here"))
+    assert empty == {"profile": "paper", "experiment": "reproduce_paper", "missing": 24}
+    assert section["missing"] == 0
 
 
 def runs_of(out: Path) -> tuple[mlflow.MlflowClient, dict]:

@@ -52,8 +52,8 @@ def test_compose_along_one_axis_is_addition(axis, rng):
 def test_pose_motion_round_trip(rng):
     pose = g.motion_to_matrix(torch.tensor(rng.normal(size=6)))
     motion = torch.tensor(rng.normal(size=6) * 0.2)
-    moved = g.apply_motion(pose, motion)
-    torch.testing.assert_close(g.relative_motion(pose, moved), motion, atol=1e-12, rtol=0)
+    moved = pose @ g.motion_to_matrix(motion)  # the camera moved by ``motion`` in its own frame
+    torch.testing.assert_close(g.matrix_to_motion(torch.linalg.inv(pose) @ moved), motion, atol=1e-12, rtol=0)
     torch.testing.assert_close(g.motion_to_matrix(g.matrix_to_motion(pose)), pose, atol=1e-12, rtol=0)
 
 

@@ -19,7 +19,7 @@ from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
 from mrcert.infra.runtime import render_batch
-from mrcert.reporting.certify_log import ResultLog, merge_logs, read_log
+from mrcert.reporting.certify_log import ResultLog, concat_logs, read_log
 from tests.conftest import PAPER_K, TINY, TINY_CLASSES, compose_cfg, kill_when, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -131,7 +131,7 @@ def test_theorem_1_distribution():
 
 
 def certify_rows(outputs: Path) -> pd.DataFrame:
-    return merge_logs(sorted(outputs.glob("runs/**/certify.tsv"))).drop(columns=PER_RUN)
+    return concat_logs([read_log(p) for p in sorted(outputs.glob("runs/**/certify.tsv"))]).drop(columns=PER_RUN)
 
 
 def test_rows_follow_the_formula_and_batch_size_and_shards_do_not_matter(trained, tmp_path):

@@ -108,15 +108,3 @@ def compose(a1: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:
     For motions along one fixed axis (and pure translations) this equals ``a1 + a2``.
     """
     return matrix_to_motion(motion_to_matrix(a1) @ motion_to_matrix(a2))
-
-
-def relative_motion(pose_from: torch.Tensor, pose_to: torch.Tensor) -> torch.Tensor:
-    """The motion ``a`` with ``pose_to == pose_from @ motion_to_matrix(a)`` (camera-to-world poses)."""
-    pose_from = torch.as_tensor(pose_from, dtype=torch.float64)
-    pose_to = torch.as_tensor(pose_to, dtype=torch.float64)
-    return matrix_to_motion(torch.linalg.inv(pose_from) @ pose_to)
-
-
-def apply_motion(pose: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
-    """Camera-to-world pose after moving the camera by ``motion`` in its own frame."""
-    return torch.as_tensor(pose, dtype=torch.float64) @ motion_to_matrix(motion)

@@ -119,8 +119,9 @@ def complete(runs: pd.DataFrame) -> tuple[list[pd.Series], str]:
     return [], "; ".join(notes)
 
 
-Images = Callable[[DictConfig], Mapping[int, int]]
-"""The test images a config's run covers (all its shards together), each with its label."""
+Images = Callable[[DictConfig], Mapping[int, int] | None]
+"""The test images a config's run covers (all its shards together), each with its label (None
+when its task does not choose them)."""
 
 
 class RunIndex:

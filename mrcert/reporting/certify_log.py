@@ -13,7 +13,7 @@ import datetime
 import logging
 import os
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -240,11 +240,6 @@ def read_log(path: Path, required: list[str] = COHEN_COLUMNS[:5]) -> pd.DataFram
     if missing:
         raise MrcertError(f"log {str(path)!r} lacks the columns {missing} (expected: {' '.join(required)} ...)")
     return df.sort_values("idx").reset_index(drop=True)
-
-
-def merge_logs(paths: Iterable[Path]) -> pd.DataFrame:
-    """Shards (or pieces) of one certification merged into one table; an index twice is an error."""
-    return concat_logs([read_log(p) for p in paths])
 
 
 def concat_logs(logs: list[pd.DataFrame]) -> pd.DataFrame:

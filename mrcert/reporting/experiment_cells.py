@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException
 
 from mrcert.reporting.cells import Cell, RunIndex, compose_config
 
@@ -68,10 +69,15 @@ class ExperimentCells:
         """``experiment`` when set, else ``own`` with its ``{profile}`` filled in."""
         return self.experiment or own.format(profile=self.profile)
 
-    def data_of(self, own: str) -> str:
-        """The data set the cells of a table whose own experiment is ``own`` are composed on."""
+    def data_of(self, own: str) -> str | None:
+        """The data set the cells of a table whose own experiment is ``own`` are composed on
+        (None when that experiment cannot be composed with these overrides: ``data=metaroom``
+        given for the released data set, which has none of a synthetic experiment's settings)."""
         cell = (f"experiment={self.experiment_for(own)}", f"profile={self.profile}", "task=certify", *self.overrides)
-        return str(compose_config(cell).data.name)
+        try:
+            return str(compose_config(cell).data.name)
+        except HydraException:
+            return None
 
     def cell(self, experiment: str, combo: tuple[str, ...], measure: Measure) -> Cell:
         task = self.certify_task if measure.task == "certify" else measure.task

@@ -16,7 +16,7 @@ import pandas as pd
 
 from mrcert.reporting import certify_log, learning_curve, paper_results, side_by_side, tables
 from mrcert.reporting.cells import Cell, compose_config
-from mrcert.reporting.experiment_cells import ExperimentCells
+from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.plots import save
 from mrcert.reporting.tables import (
@@ -316,6 +316,39 @@ def shown_times(times: pd.DataFrame) -> str:
     return markdown(shown)
 
 
+MAKEFILE = Path(__file__).resolve().parents[2] / "Makefile"
+
+
+def make_stage(target: str, profile: str) -> list[str]:
+    """The mrcert commands that ``make TARGET`` runs, as the Makefile writes them (continued
+    lines joined, comments dropped, ``$(MRCERT)`` as ``mrcert``, ``$(PROFILE)`` as
+    ``profile``, ``$(REPRODUCTION)`` as its experiment); the page's last stage, the tables, not
+    among them. Empty without the
+    Makefile (an installed copy)."""
+    if not MAKEFILE.is_file():
+        return []
+    lines = MAKEFILE.read_text().split("\n")
+    start = next((i for i, line in enumerate(lines) if line.startswith(f"{target}:")), None)
+    if start is None:
+        return []
+    commands, current = [], ""
+    for line in lines[start + 1 :]:
+        if not line.startswith("\t"):
+            break
+        text = line.strip().split("  #", 1)[0].rstrip()
+        current += " " + text.rstrip("\\").strip()
+        if not text.endswith("\\"):
+            commands.append(current.strip())
+            current = ""
+    named = {"$(MRCERT)": "mrcert", "$(PROFILE)": profile, "$(REPRODUCTION)": REPRODUCTION.format(profile=profile)}
+    shown = []
+    for command in commands:
+        for variable, value in named.items():
+            command = command.replace(variable, value)
+        shown.append(command)
+    return [c for c in shown if c.startswith("mrcert ")]
+
+
 def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
     """Camera motion smoothing beside pixel-wise smoothing, when ``make side-by-side`` has run."""
     pair = side_by_side.runs(src)
@@ -330,6 +363,7 @@ def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
     pixelwise = pair[pair["frames"].notna()]
     return {
         "experiment": side_by_side.EXPERIMENT,
+        "commands": make_stage("side-by-side", src.profile),
         "share": _share(int(pixelwise.iloc[0]["skip"])),
         "table": markdown(as_text(side_by_side.table(pair))),
         "picture": plot.name,
@@ -344,25 +378,29 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
     """The paper's own profile (``profile=paper``: the paper's data settings, ResNets and
     100-epoch recipe, a GPU's work), when the store holds any of its Table 3 runs (e.g. gathered
     from a GPU with ``task=gather``): the filled rows beside the paper, their base models, and the
-    time each stage took on which machine."""
-    profiles = src.index.df.get("tags.mrcert.profile", pd.Series(dtype=str))
-    if src.profile == PAPER_PROFILE or not (profiles == PAPER_PROFILE).any():  # the page's own, or nothing to show
+    time each stage took on which machine; when it holds none, how many jobs it lacks."""
+    if src.profile == PAPER_PROFILE:  # the page's own
         return None
-    paper = ExperimentCells(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
     experiment = REPRODUCTION.format(profile=PAPER_PROFILE)
+    missing = {"profile": PAPER_PROFILE, "experiment": experiment, "missing": len(sweep_combos(experiment))}
+    profiles = src.index.df.get("tags.mrcert.profile", pd.Series(dtype=str))
+    if not (profiles == PAPER_PROFILE).any():
+        return missing
+    paper = ExperimentCells(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
     filled = {
         (AXIS_NAMES.get(j.axis, j.axis), model_label(j.arch, j.variant)): j
         for j in jobs_of(paper, experiment)
         if any(c.filled for c in (j.certify, j.smooth, j.attack))
     }  # one job per row (cell overrides can make two of the sweep's jobs one)
     if not filled:
-        return None
+        return missing
     jobs = list(filled.values())
     table = tables.TABLE3.build(paper, show_paper=True, name="paper_profile")
     cfg = jobs[0].certify.cfg
     return {
         "profile": PAPER_PROFILE,
         "experiment": experiment,
+        "missing": 0,
         "train_poses": cfg.data.protocol.train.per_class,
         "epochs": cfg.train.epochs,
         "lr": cfg.train.lr,
@@ -416,17 +454,21 @@ def page_context(
         protocol = jobs[0].certify.cfg if jobs else compose_config((f"experiment={learning_curve.EXPERIMENTS[0]}",))
         curve_section = {
             "experiments": learning_curve.EXPERIMENTS,
+            "shown": len(curve),
+            "defined": sum(len(sweep_combos(e)) for e in learning_curve.EXPERIMENTS),
             "separation": separation(protocol),
             "table": markdown(as_text(learning_curve.table(curve))),
             "picture": plot.name,
         } | curve_summary(models, curve)
     low, high = paper_results.base_benign_range(PAPER_ARCH)
     machines = sorted({str(m) for m in src.index.df.get("tags.mrcert.machine", pd.Series(dtype=str)).dropna()})
+    codes = sorted({str(c) for c in src.index.df.get("tags.mrcert.code_version", pd.Series(dtype=str)).dropna()})
     return {
         "experiment": experiment,
         "reproduction": experiment == REPRODUCTION.format(profile=src.profile),
         "profile": src.profile,
         "command": command,
+        "stages": make_stage("reproduce-tables", src.profile),
         "setup": setup(src, jobs),
         "paper": {
             "dataset": paper_results.DATASET,
@@ -447,6 +489,8 @@ def page_context(
         "paper_profile": paper_profile_section(src),
         "times": shown_times(stage_times(src)) if filled else "",
         "machines": "; ".join(machines) or "unknown",
+        "code": ", ".join(f"`{c}`" for c in codes) or "an unrecorded version",
+        "sources": f"{page.stem}_sources.csv",
     }
 
 
@@ -466,4 +510,6 @@ def write_page(
     picture = page.with_name(f"{page.stem}_certified_accuracy_vs_radius.png")
     shutil.copyfile(figure, picture)
     page.write_text(render(page_context(src, experiment, table, picture.name, page, command, views)))
+    sources = pd.DataFrame(src.provenance, columns=["table", "row", "column", "value", "runs", "links", "note"])
+    sources.drop(columns="links").to_csv(page.with_name(f"{page.stem}_sources.csv"), index=False, na_rep="")
     return page

@@ -195,7 +195,9 @@ def runs(
 
 
 def table(df: pd.DataFrame) -> pd.DataFrame:
-    """The page's table: one row per method and interval."""
+    """The page's table: one row per method, base model and interval (a run beside the pixel-wise
+    runs of both pixel sigmas is shown once), by axis and interval."""
+    df = df.drop_duplicates(["interval", "run_id"]).sort_values(["axis", "half_width"], kind="stable")
     out = df[
         [
             "axis",

@@ -150,8 +150,10 @@ class Table:
     where: Callable[[Job], bool] = lambda job: True
     custom: Callable[[ExperimentCells, str], pd.DataFrame] | None = None
 
-    def about(self, data: str) -> bool:
-        return self.data is None or data in self.data
+    def about(self, data: str | None) -> bool:
+        """Whether the table is about the data set ``data`` (None: its experiment cannot be
+        composed on the data set asked for, so it is about none)."""
+        return data is not None and (self.data is None or data in self.data)
 
     def build(
         self, src: ExperimentCells, show_paper: bool = False, name: str | None = None, paper_arch: str | None = None

@@ -39,9 +39,12 @@ def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards
     return chosen[shard::num_shards]
 
 
-def run_images(cfg: DictConfig) -> dict[int, int]:
+def run_images(cfg: DictConfig) -> dict[int, int] | None:
     """The test images a run of ``cfg`` covers (all its shards together), each with its label
-    in the data set: what a table checks a run's log against."""
+    in the data set: what a table checks a run's log against (None for a task that does not
+    choose its images: an imported log)."""
+    if "skip" not in cfg.task:
+        return None
     labels = _test_labels(OmegaConf.to_yaml(cfg.data))
     t = cfg.task
     return {i: int(labels[i]) for i in job_indices(len(labels), int(t.get("skip", 1)), t.get("max"), 0, 1)}

@@ -98,7 +98,7 @@ def write_all(ctx: RunContext, src: ExperimentCells, built: dict, out: Path, pag
     if page is not None:
         table = tables.TABLE3_SEQUENTIAL.build(src, show_paper=True, name="page", paper_arch=PAPER_ARCH)
         chosen = f" task.experiment={t.experiment}" if t.experiment else ""
-        command = f"mrcert task=tables profile={t.profile}{chosen} task.page={t.page}"
+        command = launch_command() or f"mrcert task=tables profile={t.profile}{chosen} task.page={t.page}"
         experiment = src.experiment_for(tables.REPRODUCTION)
         cells = [c for _, c in src.rows(experiment, tables.SMOOTHED_BENIGN)]
         views = nearest_views(cells[0].cfg.data, page.with_name(f"{page.stem}_views.png")) if cells else None
@@ -153,10 +153,10 @@ def staged(folders: list[Path]) -> Iterator[list[Path]]:
 
 def method_overview(src: ExperimentCells, path: Path) -> Path | None:
     """The method in one picture (:func:`mrcert.reporting.overview.method_figure`) from the
-    first filled certify cell of Table 3's rows, on its first correctly classified test image;
-    None when no certify cell is filled."""
+    first filled certify cell of Table 3's rows (a run of ours: an imported log comes without
+    its scene), on its first correctly classified test image; None when no such cell is filled."""
     for _, cell in src.rows(src.experiment_for(tables.REPRODUCTION), tables.CERTIFIED):
-        log = src.index.log(cell)
+        log = src.index.log(cell) if cell.cfg.task.name == "certify" else None  # an imported log has no scene
         if log is not None and len(log):
             right = log[log["correct"] == 1]
             index = int((right if len(right) else log)["idx"].iloc[0])
@@ -170,6 +170,17 @@ def method_overview(src: ExperimentCells, path: Path) -> Path | None:
             name = bundle.classes[int(sample.label)]
             return method_figure(method, view, name, render(motions), motions, log, float(cfg.motion.radius), path)
     return None
+
+
+def launch_command() -> str | None:
+    """The command that launched this run, as typed (None outside a launch: the API)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.get()
+    return " ".join(["mrcert", *(["-m"] if hc.mode == RunMode.MULTIRUN else []), *hc.overrides.task])
 
 
 def named_data() -> str | None:
