@@ -381,8 +381,12 @@ def test_the_shipped_experiments_give_the_settings_their_tables_rest_on():
     [
         ("+per_task.atack.skip=2", "per_task.atack", "settings of one of the tasks certify, smooth, attack, export"),
         ("+per_task.train.skip=2", "per_task.train", "settings of one of the tasks certify, smooth, attack, export"),
-        ("+per_task.attack.alpha=0.05", "per_task.attack.alpha", "one of the per-task settings n, decision, skip"),
-        ("+per_task.attack=2", "per_task.attack", "a mapping of some of n, decision, skip"),
+        (
+            "+per_task.attack.alpha=0.05",
+            "per_task.attack.alpha",
+            "one of the per-task settings n, decision, skip, sequential",
+        ),
+        ("+per_task.attack=2", "per_task.attack", "a mapping of some of n, decision, skip, sequential"),
     ],
 )
 def test_a_per_task_setting_no_task_reads_is_refused_whatever_the_task(override, key, allowed):

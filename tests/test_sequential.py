@@ -7,7 +7,7 @@ from scipy.stats import binom, norm
 from statsmodels.stats.proportion import proportion_confint
 
 from mrcert.core.sampling import SmoothedClassifier, image_generator
-from mrcert.core.sequential import SequentialDesign
+from mrcert.core.sequential import TOLERANCE, PredictDesign, SequentialDesign, predict_grid
 from mrcert.core.smoothing import CameraMotionSmoothing
 from tests.test_smoothing import Constant, tiny_sample
 
@@ -134,3 +134,107 @@ def test_sequential_stops_early_when_the_radius_is_out_of_reach():
 def test_a_design_refuses_looks_it_cannot_make():
     with pytest.raises(ValueError, match="first look"):
         SequentialDesign.plan(100, 0.01, 0.84, 500)
+
+
+# --- sequential PREDICT ----------------------------------------------------------------------
+
+
+class Voting(SmoothedClassifier):
+    """The smoothed classifier with its votes simulated: classes 0, 1, 2 with probabilities
+    ``pA, pB`` and the rest per sample, so the real PREDICT code runs on thousands of streams."""
+
+    def __init__(self, pa: float, pb: float, seed: int):
+        super().__init__(None, CameraMotionSmoothing(("tz",), (0.1,)), 3)
+        self.p, self.rng = np.array([pa, pb, max(0.0, 1 - pa - pb)]), np.random.default_rng(seed)
+
+    def sample_counts(self, render, n, generator, center=None):
+        return self.rng.multinomial(n, self.p / self.p.sum())
+
+
+def test_fixed_n_predict_as_a_design_is_cohens_test():
+    """The one-look design decides exactly as Cohen's PREDICT (SciPy's two-sided binomial test
+    of the top two counts), for every split of up to 30 votes."""
+    design = PredictDesign.fixed(30, 0.01)
+    for a in range(31):
+        for b in range(31 - a):
+            counts = np.array([a, b, 30 - a - b])
+            assert design.decide(counts, 0) == SmoothedClassifier.decide(counts, 0.01)
+
+
+@pytest.mark.parametrize(("n", "alpha"), [(100, 0.01), (100, 0.001), (200, 0.01)])
+def test_sequential_predict_is_wrong_at_most_alpha_and_abstains_at_most_tolerance_more(n, alpha):
+    """Exact, on the grid of top-two probabilities and on a finer one: the class returned is not
+    the top class with probability at most alpha (at a tie either counts as wrong), and it
+    abstains at most TOLERANCE more often than fixed-n PREDICT. The same looks each at the full
+    alpha (no split) break the first: at a tie they answer more often than alpha."""
+    design = PredictDesign.plan(n, alpha, 20)
+    pa, pb = predict_grid()
+    won, lost, abstained, _ = design.operating(pa, pb)
+    fixed = PredictDesign.fixed(n, alpha).operating(pa, pb)
+    tie = pa == pb  # at a tie either class returned is wrong
+    assert (lost <= alpha + 1e-12).all() and (won[tie] + lost[tie] <= alpha + 1e-12).all()
+    assert (abstained <= fixed[2] + TOLERANCE).all()
+    assert sum(design.levels) <= alpha * (1 + 1e-12)
+    fine = np.linspace(0.3, 0.5, 21)
+    assert (sum(design.operating(fine, fine)[:2]) <= alpha + 1e-12).all()
+    unsplit = PredictDesign(design.looks, (alpha,) * len(design.looks))
+    assert sum(unsplit.operating(0.5, 0.5)[:2])[0] > alpha
+
+
+def test_sequential_predict_agrees_with_its_exact_operating_characteristics_on_simulated_streams():
+    """The dynamic programme against Monte Carlo through SmoothedClassifier.predict_sequential."""
+    streams, design = 800, PredictDesign.plan(100, 0.01, 20)
+    for pa, pb in ((0.95, 0.05), (0.6, 0.4), (0.5, 0.5)):  # two classes, as the programme models
+        runs = [Voting(pa, pb, seed).predict_sequential(None, 100, 0.01, 20, None) for seed in range(streams)]
+        won, lost, abstained, samples = (v[0] for v in design.operating(pa, pb))
+        for value, share in (
+            (won, np.mean([c == 0 for c, _ in runs])),
+            (abstained, np.mean([c == -1 for c, _ in runs])),
+        ):
+            assert abs(share - value) <= 4 * np.sqrt(value * (1 - value) / streams) + 1e-9
+        drawn = np.array([votes.sum() for _, votes in runs], float)
+        assert (
+            set(drawn) <= set(design.looks) and abs(drawn.mean() - samples) <= 4 * drawn.std() / np.sqrt(streams) + 0.1
+        )
+
+
+def test_sequential_predict_stops_at_the_first_look_on_a_sure_image_whatever_the_batch():
+    """A base classifier that always answers 2: a fifth of fixed n's samples, the same answer,
+    whatever the batch size."""
+    dist = CameraMotionSmoothing(("tz",), (0.1,))
+    render = tiny_sample().renderer()
+    answers = [
+        SmoothedClassifier(Constant(2), dist, 4, batch_size=b).predict_sequential(
+            render, 100, 0.01, 20, image_generator(0, 0)
+        )
+        for b in (7, 64)
+    ]
+    assert [(c, v.tolist()) for c, v in answers] == [(2, [0, 0, 20, 0])] * 2
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["task=smooth", "task.sequential=true", "task.decision=vote"],
+            "task.sequential=True is not allowed: false with",
+        ),
+        (["task=attack", "task.sequential=true", "task.n=1000"], "task.n=1000 is not allowed: at most 400"),
+        (["task=smooth", "task.sequential=true", "task.look=200"], "task.look=200 is not allowed: an integer in"),
+    ],
+)
+def test_sequential_predict_settings_that_cannot_work_are_refused_in_one_line(overrides, message):
+    from mrcert.errors import ConfigError
+    from mrcert.infra.config import validate
+    from tests.conftest import compose_cfg
+
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        validate(compose_cfg(overrides))
+
+
+def test_the_planned_predict_design_is_the_one_the_docs_describe():
+    """docs/method.md §7's looks and its first row: n = 100, alpha = 0.01, looks from 20."""
+    design = PredictDesign.plan(100, 0.01, 20)
+    assert design.looks == (20, 40, 80, 108)
+    won, _, abstained, samples = design.operating([1.0, 0.9], [0.0, 0.05])
+    assert samples[0] == pytest.approx(20.0) and round(samples[1], 1) == 25.4 and (abstained <= 1e-12).all()

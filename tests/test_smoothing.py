@@ -506,3 +506,51 @@ def test_a_certificate_carries_the_unit_of_its_radius(axes, sigmas, radius_unit,
     )
     assert cert.unit == dist.region_unit == dist.view_unit == radius_unit and dist.sigma_unit == sigma_unit
     assert f"({radius_unit})" in dist.region() if len(axes) == 1 else "sigma units" in dist.region()
+
+
+def test_sequential_smooth_and_attack_are_predict_sequential_at_each_pose_whatever_the_batch(trained, tmp_path):
+    """task.sequential=true: each smooth row is sequential PREDICT at the test pose (its n column
+    the samples drawn, one of the design's looks), each attack row's smoothed columns are
+    sequential PREDICT at each perturbed pose in turn; the same rows in batches of 8 and 64."""
+    from mrcert.core.sequential import PredictDesign
+    from mrcert.data.sources import load
+    from mrcert.infra.checkpoints import load_classifier
+    from mrcert.tasks.attack import attack_motions
+
+    ck = f"model.checkpoint={best(trained)}"
+    logs = {}
+    for batch in (8, 64):
+        cfg = tiny_cfg(["task=smooth", "task.sequential=true", "task.max=3", f"task.batch_size={batch}", ck], tmp_path)
+        run_task(cfg, tmp_path / f"s{batch}")
+        overrides = ["task=attack", "attack.k=4", "task.sequential=true", "task.max=4", f"task.batch_size={batch}", ck]
+        run_task(tiny_cfg(overrides, tmp_path / f"a{batch}"), tmp_path / f"a{batch}" / "a")
+        logs[batch] = (
+            read_log(tmp_path / f"s{batch}" / "smooth.tsv", ["idx"]),
+            read_log(tmp_path / f"a{batch}" / "a" / "attack.tsv", ["idx"]),
+        )
+    for a, b in zip(logs[8], logs[64], strict=True):
+        kept = [c for c in a.columns if c not in PER_RUN]
+        pd.testing.assert_frame_equal(a[kept], b[kept])
+    rows, attacked = logs[8]
+    design = PredictDesign.plan(100, 0.01, 20)
+    assert set(rows["n"]) <= set(design.looks)
+    bundle = load(cfg.data)
+    samples = bundle.samples(crop=CameraMotionSmoothing(("tz",), (0.1,)).crop_bound(6.0))
+    smoothed = SmoothedClassifier(load_classifier(cfg, TINY_CLASSES, "cpu"), CameraMotionSmoothing(("tz",), (0.1,)), 3)
+    for _, row in rows.iterrows():
+        decision, votes = smoothed.predict_sequential(
+            samples[int(row.idx)].renderer(), 100, 0.01, 20, image_generator(0, int(row.idx))
+        )
+        assert (row.predict, row.n) == (decision, votes.sum())
+    acfg = tiny_cfg(["task=attack", "attack.k=4"], tmp_path)
+    for _, row in attacked.iterrows():
+        i, render = int(row.idx), samples[int(row.idx)].renderer()
+        expected = (1, "-")
+        for k, m in enumerate(attack_motions(acfg.attack, "tz", int(acfg.seed), i)):
+            decision, _ = smoothed.predict_sequential(
+                render, 100, 0.01, 20, image_generator(acfg.seed, i, "predict", k), m
+            )
+            if decision != row.label:
+                expected = (0, "abstain" if decision == ABSTAIN else "wrong")
+                break
+        assert (row.smoothed_robust, row.smoothed_failure) == expected

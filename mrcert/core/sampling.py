@@ -24,7 +24,7 @@ from scipy.stats import binomtest
 
 from mrcert.core.method import ABSTAIN, BaseClassifier, Certificate, CertifyRequest, Method, Render
 from mrcert.core.models import predicted
-from mrcert.core.sequential import SequentialDesign, lower_confidence_bound
+from mrcert.core.sequential import PredictDesign, SequentialDesign, lower_confidence_bound
 
 DECISIONS = ("predict", "vote")
 """How a smoothed prediction is decided from its votes (:meth:`SmoothedClassifier.decide`)."""
@@ -175,6 +175,31 @@ class SmoothedClassifier:
         """The smoothed prediction at the pose moved by ``center`` (default: the test pose itself),
         by ``rule`` (:meth:`decide`)."""
         return self.decide(self.sample_counts(render, n, generator, center), alpha, rule)
+
+    def predict_sequential(
+        self,
+        render: Render,
+        n: int,
+        alpha: float,
+        first_look: int,
+        generator: torch.Generator,
+        center: torch.Tensor | None = None,
+    ) -> tuple[int, np.ndarray]:
+        """Cohen's PREDICT with early stopping (:class:`~mrcert.core.sequential.PredictDesign`
+        planned for ``n``, ``alpha`` and looks from ``first_look``): the smoothed prediction or
+        ABSTAIN, wrong with probability at most ``alpha`` as :meth:`predict` is, and the votes
+        it drew (their sum: the samples). Looks are fixed in samples, so the result does not
+        depend on the batch size."""
+        design = PredictDesign.plan(n, alpha, first_look)
+        counts, drawn = None, 0
+        for k, look in enumerate(design.looks):
+            votes = self.sample_counts(render, look - drawn, generator, center)
+            counts = votes if counts is None else counts + votes
+            drawn = look
+            decided = design.decide(counts, k)
+            if decided is not None:
+                return decided, counts
+        raise AssertionError("the last look always decides")
 
     @staticmethod
     def decide(counts: np.ndarray, alpha: float, rule: str = "predict") -> int:

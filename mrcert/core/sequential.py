@@ -189,3 +189,148 @@ def _plan(n: int, alpha: float, need: float, first: int) -> SequentialDesign:
         if (design.operating(grid)[0] >= reference - TOLERANCE).all():
             return design
     raise ValueError(f"no sequential design up to {4 * n} samples matches fixed n = {n} at need {need}")
+
+
+# --- sequential PREDICT ---------------------------------------------------------------------
+
+
+def _two_sided_critical(m: int, level: float) -> int:
+    """Smallest count ``a`` of the top class among ``m`` top-two votes whose two-sided binomial
+    test against 1/2 (Cohen's PREDICT) rejects at ``level``: ``2 P(X >= a) <= level`` with ``a >
+    m / 2``; ``m + 1`` when none does (or at level 0)."""
+    if level <= 0 or m == 0:
+        return m + 1
+    a = np.arange(m // 2 + 1, m + 1)
+    passes = np.minimum(1.0, 2.0 * binom.sf(a - 1, m, 0.5)) <= level
+    return int(a[passes][0]) if passes.any() else m + 1
+
+
+@dataclass(frozen=True)
+class PredictDesign:
+    """Sequential PREDICT: Cohen's PREDICT (the top class of the votes, or ABSTAIN unless the
+    two-sided binomial test of the top two counts rejects equality) checked at a few looks
+    ``looks`` (sample counts), each at its own level ``levels`` (summing to at most alpha). It
+    stops at the first look that decides a class and abstains when the last look does not.
+
+    Every look is Cohen's test at its level, so by the union bound the class returned is the
+    smoothed classifier's with probability at least ``1 - alpha`` whatever the stop, as for
+    fixed n. :meth:`operating` gives the exact probabilities of returning the top class, the
+    other one and abstaining, and the expected samples, for votes of two classes with
+    probabilities ``pA >= pB`` (the rest on classes that never come second): fixed-n PREDICT is
+    the design with one look."""
+
+    looks: tuple[int, ...]
+    levels: tuple[float, ...]
+
+    @classmethod
+    def fixed(cls, n: int, alpha: float) -> PredictDesign:
+        return cls((n,), (alpha,))
+
+    @classmethod
+    def geometric(cls, first: int, n_max: int, alpha: float) -> PredictDesign:
+        """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max``; :data:`EARLY_SHARE` of alpha
+        split evenly over the early looks at which unanimous votes could decide."""
+        early = []
+        t = first
+        while t < n_max:
+            early.append(t)
+            t *= 2
+        able = list(early)
+        while able:  # a look that cannot decide gives its share to the others
+            share = EARLY_SHARE * alpha / len(able)
+            kept = [t for t in able if _two_sided_critical(t, share) <= t]
+            if kept == able:
+                break
+            able = kept
+        share = EARLY_SHARE * alpha / len(able) if able else 0.0
+        levels = tuple(share if t in able else 0.0 for t in early)
+        return cls((*early, n_max), (*levels, alpha - share * len(able)))
+
+    @classmethod
+    def plan(cls, n: int, alpha: float, first: int) -> PredictDesign:
+        """The geometric design whose last look is the smallest ``n_max >= n`` (in steps of
+        ``first / 5``) that abstains at most :data:`TOLERANCE` more often than fixed-n PREDICT at
+        every pair of a grid of top-two probabilities."""
+        return _plan_predict(int(n), float(alpha), int(first))
+
+    @cached_property
+    def critical(self) -> list[np.ndarray]:
+        """Per look: for each number ``m`` of top-two votes (0..t), the count that decides."""
+        return [
+            np.array([_two_sided_critical(m, level) for m in range(t + 1)])
+            for t, level in zip(self.looks, self.levels, strict=True)
+        ]
+
+    def decide(self, counts: np.ndarray, k: int) -> int | None:
+        """After look ``k``: the index of the class decided, ABSTAIN (-1) at the last look, or None
+        (draw on). The top two as Cohen's PREDICT orders them (ties to the lower index)."""
+        top2 = np.argsort(counts, kind="stable")[::-1][:2]
+        n_a, n_b = int(counts[top2[0]]), int(counts[top2[1]]) if len(counts) > 1 else 0
+        if n_a >= self.critical[k][n_a + n_b]:
+            return int(top2[0])
+        return -1 if k == len(self.looks) - 1 else None
+
+    def operating(self, pa: np.ndarray, pb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Exact probabilities of returning A, returning B and abstaining, and the expected
+        samples, for each pair ``(pA, pB)``: the joint distribution of the two counts is carried
+        through the looks (trinomial increments), each look removing the mass it decides."""
+        pa, pb = np.atleast_1d(np.asarray(pa, float)), np.atleast_1d(np.asarray(pb, float))
+        alive = np.ones((len(pa), 1, 1))  # P(count A = i, count B = j, not stopped), i + j <= t
+        won, lost, samples, previous = np.zeros(len(pa)), np.zeros(len(pa)), np.zeros(len(pa)), 0
+        for k, t in enumerate(self.looks):
+            d = t - previous
+            i, j = np.meshgrid(np.arange(d + 1), np.arange(d + 1), indexing="ij")
+            step = _trinomial(d, i, j, pa, pb)
+            alive = np.clip(fftconvolve(alive, step, axes=(1, 2)), 0.0, None)
+            a, b = np.meshgrid(np.arange(t + 1), np.arange(t + 1), indexing="ij")
+            m = np.minimum(a + b, t)
+            crit = self.critical[k][m]
+            to_a = (a + b <= t) & (a >= b) & (a >= crit)
+            to_b = (a + b <= t) & (b > a) & (b >= crit)
+            won += alive[:, to_a].sum(1)
+            lost += alive[:, to_b].sum(1)
+            last = k == len(self.looks) - 1
+            stops = (to_a | to_b) | last
+            samples += t * alive[:, stops & (a + b <= t)].sum(1)
+            alive = np.where(stops, 0.0, alive)
+            previous = t
+        return won, lost, np.clip(1.0 - won - lost, 0.0, 1.0), samples
+
+
+def _trinomial(d: int, i: np.ndarray, j: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
+    """P(i votes for A, j for B in d draws) for each pair, shape (pairs, d + 1, d + 1)."""
+    from scipy.special import gammaln
+
+    ok = i + j <= d
+    rest = np.where(ok, d - i - j, 0)
+    log_c = gammaln(d + 1) - gammaln(i + 1) - gammaln(j + 1) - gammaln(rest + 1)
+    pc = np.clip(1.0 - pa - pb, 0.0, 1.0)
+    logs = np.broadcast_to(log_c, (len(pa), *log_c.shape)).copy()
+    for count, p in ((i, pa), (j, pb), (rest, pc)):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            term = count[None] * np.log(p)[:, None, None]
+        logs += np.where(count[None] == 0, 0.0, term)  # p^0 = 1, also for p = 0
+    return np.where(ok[None], np.exp(logs), 0.0)
+
+
+def predict_grid() -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``pA >= pB``, ``pA + pB <= 1``, at which PREDICT designs are compared."""
+    pairs = [(a, b) for a in np.linspace(0.05, 1.0, 20) for b in np.linspace(0.0, a, 11) if a + b <= 1.0 + 1e-12]
+    pa, pb = np.array(pairs).T
+    return pa, np.minimum(pb, 1.0 - pa)
+
+
+@cache
+def _plan_predict(n: int, alpha: float, first: int) -> PredictDesign:
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    if first < 1 or n < first:
+        raise ValueError(f"the first look must be between 1 and n = {n} samples, got {first}")
+    pa, pb = predict_grid()
+    reference = PredictDesign.fixed(n, alpha).operating(pa, pb)[2]
+    step = max(1, first // 5)
+    for n_max in range(n, 4 * n + 1, step):
+        design = PredictDesign.geometric(first, n_max, alpha)
+        if (design.operating(pa, pb)[2] <= reference + TOLERANCE).all():
+            return design
+    raise ValueError(f"no sequential PREDICT design up to {4 * n} samples matches fixed n = {n}")

@@ -56,7 +56,10 @@ def per_profile(values: Mapping[str, Any], *, _root_: DictConfig) -> Any:
 
 OmegaConf.register_new_resolver("per_profile", per_profile, replace=True)
 
-PER_TASK_KEYS = ("n", "decision", "skip")
+MAX_SEQUENTIAL_PREDICT = 400
+"""The largest ``task.n`` sequential PREDICT plans for (about 20 s on 2 CPU cores at 400)."""
+
+PER_TASK_KEYS = ("n", "decision", "skip", "sequential")
 """What an experiment may set for one task only, under ``per_task.<task>`` (``per_task: {attack:
 {skip: 2}}``): the evaluation tasks' files read these keys through ``${task_setting:KEY,DEFAULT}``,
 so a value given on the command line (``task.skip=1``) still wins."""
@@ -363,7 +366,15 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("task.shard", task.get("shard"), f"an integer in [0, task.num_shards={task['num_shards']})")
     look, n = task.get("look"), task.get("n")
     if task.get("sequential") and isinstance(n, int) and not (isinstance(look, int) and 1 <= look <= n):
-        raise ConfigError("task.look", look, f"an integer in [1, task.n={n}]: sequential CERTIFY's first look")
+        raise ConfigError("task.look", look, f"an integer in [1, task.n={n}]: the sequential procedure's first look")
+    if task.get("sequential") and task.get("name") in ("smooth", "attack"):
+        if task.get("decision") == "vote":
+            raise ConfigError(
+                "task.sequential", True, "false with task.decision=vote: sequential PREDICT uses Cohen's test"
+            )
+        if isinstance(n, int) and n > MAX_SEQUENTIAL_PREDICT:
+            limit = f"at most {MAX_SEQUENTIAL_PREDICT} with task.sequential=true (its exact plan grows with n squared)"
+            raise ConfigError("task.n", n, limit)
     extent = task.get("extent") or {}
     for axis, value in extent.items():
         if axis not in AXES or not _number(value) or value < 0:

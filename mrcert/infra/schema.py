@@ -34,13 +34,13 @@ class EvaluationTask:
     crop_sigmas: float = MISSING
     resume: bool = MISSING
     backend: str = MISSING
+    sequential: bool = MISSING
+    look: int = MISSING
 
 
 @dataclass
 class Certify(EvaluationTask):
     n0: int = MISSING
-    sequential: bool = MISSING
-    look: int = MISSING
 
 
 @dataclass

@@ -75,6 +75,9 @@ EVALUATION = Identity(
     method="result",
 )
 
+FIXED_PREDICT = (("task.sequential", False, "task.sequential"), ("task.sequential", False, "task.look"))
+"""Fixed-n PREDICT (smooth, attack) keeps the keys it had before sequential PREDICT existed."""
+
 HELPER_IGNORES = ("data", "model", "motion", "method", "seed", "profile", "train", "attack")
 """What a helper task (import, gather) never depends on: the composed data, model and recipe."""
 
@@ -127,7 +130,7 @@ TASKS: dict[str, Task] = {
     ),
     "smooth": Task(
         "smoothed benign accuracy: PREDICT at each test pose",
-        EVALUATION,
+        replace(EVALUATION, ignore_when=FIXED_PREDICT),
         log="smooth.tsv",
         columns=("idx", "label", "predict", "correct", "n", "axis", "seconds"),
         headline=("smoothed_benign_accuracy",),
@@ -139,6 +142,7 @@ TASKS: dict[str, Task] = {
             EVALUATION,
             defines=(*EVALUATION.defines, "attack"),
             ignores=tuple(i for i in EVALUATION.ignores if i != "attack"),
+            ignore_when=FIXED_PREDICT,
         ),
         log="attack.tsv",
         columns=(
@@ -184,7 +188,7 @@ TASKS: dict[str, Task] = {
     ),
     "export": Task(
         "write test images' pose intervals as ONNX + VNN-LIB verification instances",
-        EVALUATION,
+        replace(EVALUATION, ignores=(*EVALUATION.ignores, "task.sequential", "task.look")),  # it samples nothing
         title=_model_title,
     ),
     "viewpoints": Task(

@@ -6,7 +6,9 @@ counts as robust only if the prediction is right at all K motions (smoothed: PRE
 perturbed pose, abstain = wrong). Per image: the base model's benign prediction and the
 worst motion found (base: smallest margin; smoothed: the first failing motion, else the one
 with the fewest votes for the label), and how the smoothed model failed there (``abstain``:
-PREDICT could not decide; ``wrong``: it decided another class; ``-``: it did not fail).
+PREDICT could not decide; ``wrong``: it decided another class; ``-``: it did not fail). With
+``task.sequential`` each PREDICT is sequential (:class:`~mrcert.core.sequential.PredictDesign`),
+and the smoothed worst motion is the one with the smallest share of votes for the label.
 """
 
 from __future__ import annotations
@@ -76,9 +78,15 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         if t.smoothed:
             votes = []
             for k, m in enumerate(motions):
-                counts = ev.smoothed.sample_counts(render, int(t.n), image_generator(cfg.seed, i, "predict", k), m)
-                votes.append(counts[sample.label])
-                decision = ev.smoothed.decide(counts, float(t.alpha), str(t.decision))
+                generator = image_generator(cfg.seed, i, "predict", k)
+                if t.sequential:  # the label's share of the votes drawn names the worst motion
+                    n, alpha, look = int(t.n), float(t.alpha), int(t.look)
+                    decision, counts = ev.smoothed.predict_sequential(render, n, alpha, look, generator, m)
+                    votes.append(counts[sample.label] / counts.sum())
+                else:
+                    counts = ev.smoothed.sample_counts(render, int(t.n), generator, m)
+                    votes.append(counts[sample.label])
+                    decision = ev.smoothed.decide(counts, float(t.alpha), str(t.decision))
                 if decision != sample.label:
                     failure = "abstain" if decision == ABSTAIN else "wrong"
                     row |= {

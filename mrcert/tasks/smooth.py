@@ -1,4 +1,5 @@
-"""``task=smooth``: smoothed benign accuracy, PREDICT at each test image's own pose."""
+"""``task=smooth``: smoothed benign accuracy, PREDICT at each test image's own pose (with
+``task.sequential``, sequential PREDICT: the ``n`` column logs the samples each image drew)."""
 
 from __future__ import annotations
 
@@ -18,14 +19,20 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
 
     def predict_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
-        pred = ev.smoothed.predict(
-            ev.render(sample), int(t.n), float(t.alpha), image_generator(cfg.seed, i), rule=str(t.decision)
-        )
+        render, generator = ev.render(sample), image_generator(cfg.seed, i)
+        if t.sequential:
+            pred, votes = ev.smoothed.predict_sequential(render, int(t.n), float(t.alpha), int(t.look), generator)
+            drawn = int(votes.sum())
+        else:
+            pred, drawn = (
+                ev.smoothed.predict(render, int(t.n), float(t.alpha), generator, rule=str(t.decision)),
+                int(t.n),
+            )
         return {
             "label": sample.label,
             "predict": pred,
             "correct": int(pred == sample.label),
-            "n": int(t.n),
+            "n": drawn,
             "axis": ev.method.axes_label,
         }
 
