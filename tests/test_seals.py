@@ -138,6 +138,26 @@ def test_an_interrupted_log_edited_and_checked_anew_is_computed_again(checkpoint
     assert "not the log this run recorded" in aside.read_text()
 
 
+def test_a_log_sealed_row_by_row_is_sealed_as_the_whole_file_is(tmp_path):
+    """The seal a log records as it is written (carried on row by row) is the one of the file
+    (read whole), and after a resume it goes on from the rows it kept."""
+    from mrcert.infra.seals import seal_file, tag
+    from mrcert.reporting.certify_log import ResultLog
+
+    recorded = {}
+    columns = ["idx", "label", "predict", "radius", "correct", "time", "seconds"]
+    owner = {"run_key": "k", "run_id": "r"}
+    log = ResultLog(tmp_path / "certify.tsv", columns, owner, recorded.__setitem__)
+    row = {"label": 1, "predict": 1, "radius": 0.25, "correct": 1, "seconds": 1.5}
+    for i in range(30):
+        log.append({"idx": i} | row)
+        assert recorded[tag("certify.tsv")] == seal_file(tmp_path / "certify.tsv")
+    again = ResultLog(tmp_path / "certify.tsv", columns, owner, recorded.__setitem__, recorded[tag("certify.tsv")])
+    assert again.done() == set(range(30))
+    again.append({"idx": 30} | row)
+    assert recorded[tag("certify.tsv")] == seal_file(tmp_path / "certify.tsv")
+
+
 def test_rows_that_no_run_of_the_config_could_log_are_found():
     """An index outside the run's images, a label the data set does not give the image, and a
     radius beyond the one n = 40 votes out of 40 give at the config's alpha."""

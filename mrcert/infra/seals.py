@@ -32,11 +32,6 @@ def tag(name: str) -> str:
     return PREFIX + Path(name).name
 
 
-def seal_bytes(data: bytes) -> str:
-    """The seal of ``data``: ``<length> <sha256>``."""
-    return f"{len(data)} {hashlib.sha256(data).hexdigest()}"
-
-
 def seal_file(path: Path | str) -> str:
     """The seal of a file's content (read in blocks)."""
     h, size = hashlib.sha256(), 0

@@ -10,6 +10,7 @@ Metrics and the certified-accuracy curve are computed from the exact step functi
 from __future__ import annotations
 
 import datetime
+import hashlib
 import logging
 import os
 import time
@@ -21,7 +22,7 @@ import pandas as pd
 
 from mrcert.errors import MrcertError
 from mrcert.infra.log_keys import CHECK, check_value, owner_path, read_owner, replace_text, write_owner
-from mrcert.infra.seals import seal_bytes, sealed_prefix, tag
+from mrcert.infra.seals import sealed_prefix, tag
 from mrcert.infra.tasks import CERTIFY_COLUMNS, TASKS
 
 log = logging.getLogger(__name__)
@@ -71,6 +72,8 @@ class ResultLog:
         self.key = str((owner or {}).get("run_key") or "")
         self._claimed = owner is None
         self.record, self.recorded = record, recorded
+        self._digest = None  # the running sha256 of the log as written (a tracked run)
+        self._size = 0
 
     @property
     def owner_path(self) -> Path:
@@ -174,11 +177,19 @@ class ResultLog:
             aside,
         )
 
-    def _seal(self) -> None:
-        """Record the log as it now is in the run (a tracked run only)."""
-        if self.record is not None:
-            self.recorded = seal_bytes(self.path.read_bytes())
-            self.record(tag(self.path.name), self.recorded)
+    def _seal(self, appended: bytes | None = None) -> None:
+        """Record the log as it now is in the run (a tracked run only): hashed whole once, then
+        carried on with each ``appended`` row, so a long log costs no more per row than a short one."""
+        if self.record is None:
+            return
+        if appended is None or self._digest is None:
+            data = self.path.read_bytes()
+            self._digest, self._size = hashlib.sha256(data), len(data)
+        else:
+            self._digest.update(appended)
+            self._size += len(appended)
+        self.recorded = f"{self._size} {self._digest.hexdigest()}"
+        self.record(tag(self.path.name), self.recorded)
 
     def _reason(self, cells: list[str], header: list[str], expected: Mapping[int, int] | None, seen: set[int]) -> str:
         """Why a row cannot be adopted ('' when it can)."""
@@ -208,12 +219,13 @@ class ResultLog:
     def append(self, row: dict) -> None:
         self._claim()
         new = not self.path.exists() or self.path.stat().st_size == 0
-        with open(self.path, "a") as f:
-            if new:
-                f.write("\t".join([*self.columns, CHECK]) + "\n")
-            f.write(self._line(format_row(row, self.columns)) + "\n")
+        text = (
+            ("\t".join([*self.columns, CHECK]) + "\n" if new else "") + self._line(format_row(row, self.columns)) + "\n"
+        )
+        with open(self.path, "a", encoding="utf-8") as f:
+            f.write(text)
             f.flush()
-        self._seal()
+        self._seal(None if new else text.encode("utf-8"))
 
 
 SET_ASIDE = "set_aside"
