@@ -62,7 +62,7 @@ def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
         runs = LiveRuns(cfg.tracking)
         migrate_once(runs.client, cfg.tracking.experiment)  # a store keyed before models were named by content
     cfg, ident = resolve(cfg, runs)
-    if task.identity.needs_model and cfg.model.get("checkpoint"):  # verified against its train run's seal
+    if ":/" in str(cfg.model.get("checkpoint") or ""):  # a run's model, verified against its seal (a file: above)
         from mrcert.data.sources import load
 
         path = local_checkpoint(str(cfg.model.checkpoint))

@@ -33,6 +33,7 @@ error rate grows with the number of looks; docs/method.md §6.)
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache, cached_property
 
@@ -97,26 +98,12 @@ class SequentialDesign:
 
     @classmethod
     def geometric(cls, first: int, n_max: int, alpha: float, need: float) -> SequentialDesign:
-        """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max``; :data:`EARLY_SHARE` of
-        alpha split evenly over the early looks at which a count could certify ``need``."""
-        early = []
-        t = first
-        while t < n_max:
-            early.append(t)
-            t *= 2
-        early_alpha = EARLY_SHARE * alpha
-        # A look of t samples can certify only when even t successes out of t clear `need`;
-        # dropping a look that cannot raises the others' share, so repeat until none is dropped.
-        able = list(early)
-        while able:
-            share = early_alpha / len(able)
-            kept = [t for t in able if lower_confidence_bound(t, t, share) >= need]
-            if kept == able:
-                break
-            able = kept
-        share = early_alpha / len(able) if able else 0.0
-        levels = tuple(share if t in able else 0.0 for t in early)
-        return cls((*early, n_max), (*levels, alpha - share * len(able)), FUTILITY_SHARE * alpha, need)
+        """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max`` (:func:`geometric_looks`);
+        a look of t samples can certify only when even t successes out of t clear ``need``."""
+        looks, levels = geometric_looks(
+            first, n_max, alpha, lambda t, level: lower_confidence_bound(t, t, level) >= need
+        )
+        return cls(looks, levels, FUTILITY_SHARE * alpha, need)
 
     @classmethod
     def plan(cls, n: int, alpha: float, need: float, first: int) -> SequentialDesign:
@@ -170,6 +157,48 @@ class SequentialDesign:
         return certified, samples
 
 
+def geometric_looks(
+    first: int, n_max: int, alpha: float, decides: Callable[[int, float], bool]
+) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max``, and their levels:
+    :data:`EARLY_SHARE` of alpha split evenly over the early looks at which unanimous samples
+    ``decides(t, level)`` (a look that cannot gives its share to the others, until none is
+    dropped), the rest at the last look."""
+    early = []
+    t = first
+    while t < n_max:
+        early.append(t)
+        t *= 2
+    able = list(early)
+    while able:
+        share = EARLY_SHARE * alpha / len(able)
+        kept = [t for t in able if decides(t, share)]
+        if kept == able:
+            break
+        able = kept
+    share = EARLY_SHARE * alpha / len(able) if able else 0.0
+    levels = tuple(share if t in able else 0.0 for t in early)
+    return (*early, n_max), (*levels, alpha - share * len(able))
+
+
+def check_plan(n: int, alpha: float, first: int) -> None:
+    """Refuse a level outside (0, 1) or a first look outside [1, n]."""
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    if first < 1 or n < first:
+        raise ValueError(f"the first look must be between 1 and n = {n} samples, got {first}")
+
+
+def smallest_last_look(n: int, first: int, design: Callable, matches: Callable):
+    """The design ``design(n_max)`` of the smallest last look ``n_max >= n`` (in steps of
+    ``first / 5``, up to ``4 n``) that ``matches``; None when none does."""
+    for n_max in range(n, 4 * n + 1, max(1, first // 5)):
+        candidate = design(n_max)
+        if matches(candidate):
+            return candidate
+    return None
+
+
 def power_grid(need: float) -> np.ndarray:
     """The ``pA`` values above ``need`` at which designs are compared."""
     return np.linspace(need, 1.0, POWER_GRID + 1)[1:]
@@ -177,18 +206,18 @@ def power_grid(need: float) -> np.ndarray:
 
 @cache
 def _plan(n: int, alpha: float, need: float, first: int) -> SequentialDesign:
-    if not 0 < alpha < 1:
-        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
-    if first < 1 or n < first:
-        raise ValueError(f"the first look must be between 1 and n = {n} samples, got {first}")
+    check_plan(n, alpha, first)
     grid = power_grid(need)
     reference = SequentialDesign.fixed(n, alpha, need).operating(grid)[0]
-    step = max(1, first // 5)
-    for n_max in range(n, 4 * n + 1, step):
-        design = SequentialDesign.geometric(first, n_max, alpha, need)
-        if (design.operating(grid)[0] >= reference - TOLERANCE).all():
-            return design
-    raise ValueError(f"no sequential design up to {4 * n} samples matches fixed n = {n} at need {need}")
+    design = smallest_last_look(
+        n,
+        first,
+        lambda n_max: SequentialDesign.geometric(first, n_max, alpha, need),
+        lambda d: (d.operating(grid)[0] >= reference - TOLERANCE).all(),
+    )
+    if design is None:
+        raise ValueError(f"no sequential design up to {4 * n} samples matches fixed n = {n} at need {need}")
+    return design
 
 
 # --- sequential PREDICT ---------------------------------------------------------------------
@@ -228,23 +257,9 @@ class PredictDesign:
 
     @classmethod
     def geometric(cls, first: int, n_max: int, alpha: float) -> PredictDesign:
-        """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max``; :data:`EARLY_SHARE` of alpha
-        split evenly over the early looks at which unanimous votes could decide."""
-        early = []
-        t = first
-        while t < n_max:
-            early.append(t)
-            t *= 2
-        able = list(early)
-        while able:  # a look that cannot decide gives its share to the others
-            share = EARLY_SHARE * alpha / len(able)
-            kept = [t for t in able if _two_sided_critical(t, share) <= t]
-            if kept == able:
-                break
-            able = kept
-        share = EARLY_SHARE * alpha / len(able) if able else 0.0
-        levels = tuple(share if t in able else 0.0 for t in early)
-        return cls((*early, n_max), (*levels, alpha - share * len(able)))
+        """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max`` (:func:`geometric_looks`);
+        a look of t votes can decide only when t unanimous votes pass the test."""
+        return cls(*geometric_looks(first, n_max, alpha, lambda t, level: _two_sided_critical(t, level) <= t))
 
     @classmethod
     def plan(cls, n: int, alpha: float, first: int) -> PredictDesign:
@@ -322,15 +337,15 @@ def predict_grid() -> tuple[np.ndarray, np.ndarray]:
 
 @cache
 def _plan_predict(n: int, alpha: float, first: int) -> PredictDesign:
-    if not 0 < alpha < 1:
-        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
-    if first < 1 or n < first:
-        raise ValueError(f"the first look must be between 1 and n = {n} samples, got {first}")
+    check_plan(n, alpha, first)
     pa, pb = predict_grid()
     reference = PredictDesign.fixed(n, alpha).operating(pa, pb)[2]
-    step = max(1, first // 5)
-    for n_max in range(n, 4 * n + 1, step):
-        design = PredictDesign.geometric(first, n_max, alpha)
-        if (design.operating(pa, pb)[2] <= reference + TOLERANCE).all():
-            return design
-    raise ValueError(f"no sequential PREDICT design up to {4 * n} samples matches fixed n = {n}")
+    design = smallest_last_look(
+        n,
+        first,
+        lambda n_max: PredictDesign.geometric(first, n_max, alpha),
+        lambda d: (d.operating(pa, pb)[2] <= reference + TOLERANCE).all(),
+    )
+    if design is None:
+        raise ValueError(f"no sequential PREDICT design up to {4 * n} samples matches fixed n = {n}")
+    return design

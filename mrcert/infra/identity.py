@@ -149,6 +149,16 @@ def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
 _DIGESTS: dict[tuple[str, int, int], str] = {}
 
 
+def sha256_file(path: Path | str) -> tuple[int, str]:
+    """A file's length and sha256 (hex), read in blocks."""
+    h, size = hashlib.sha256(), 0
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+            size += len(block)
+    return size, h.hexdigest()
+
+
 def file_identity(value: Any) -> Any:
     """``sha256:<hex>`` of a file's content; ``runs:/`` URIs, folders and unset values as given."""
     if not isinstance(value, str) or not value or value == "???" or ":/" in value:
@@ -159,11 +169,7 @@ def file_identity(value: Any) -> Any:
     stat = path.stat()
     cache = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
     if cache not in _DIGESTS:
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-        _DIGESTS[cache] = "sha256:" + h.hexdigest()
+        _DIGESTS[cache] = "sha256:" + sha256_file(path)[1]
     return _DIGESTS[cache]
 
 

@@ -14,18 +14,16 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
-from mrcert.infra.experiment import find_runs
-from mrcert.infra.identity import RunIdentity
 from mrcert.infra.locks import run_lock
 
 
-def resumable(cfg: DictConfig, ident: RunIdentity):
-    """The newest interrupted run of this run key with its lock taken, or None.
+def resumable(cfg: DictConfig, interrupted: list):
+    """The newest of this run key's ``interrupted`` runs (newest first) with its lock taken, or None.
 
     A run whose lock a live process holds is refused with an error naming it."""
     if not cfg.task.get("resume"):
         return None, None
-    for run in find_runs(cfg.tracking, ident.key, finished=False)[:1]:
+    for run in interrupted[:1]:
         folder = Path(run.data.tags["mrcert.output_dir"])
         lock = run_lock(folder)
         if not lock.acquire(blocking=False):
@@ -37,12 +35,12 @@ def resumable(cfg: DictConfig, ident: RunIdentity):
     return None, None
 
 
-def close_stale(cfg: DictConfig, ident: RunIdentity, client, keep: str | None) -> int:
-    """Mark KILLED every RUNNING run of this run key (but ``keep``, the run being resumed) that no
-    live process holds: a process killed outright (SIGKILL, a lost machine) never closed it.
-    The number closed."""
+def close_stale(interrupted: list, client, keep: str | None) -> int:
+    """Mark KILLED every RUNNING run of a run key's ``interrupted`` ones (but ``keep``, the run
+    being resumed) that no live process holds: a process killed outright (SIGKILL, a lost
+    machine) never closed it. The number closed."""
     closed = 0
-    for run in find_runs(cfg.tracking, ident.key, finished=False):
+    for run in interrupted:
         if run.info.status != "RUNNING" or run.info.run_id == keep:
             continue
         folder = Path(run.data.tags.get("mrcert.output_dir", ""))

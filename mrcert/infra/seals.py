@@ -20,6 +20,7 @@ import hashlib
 from pathlib import Path
 
 from mrcert.errors import MrcertError
+from mrcert.infra.identity import sha256_file
 
 PREFIX = "mrcert.sealed."
 """Tag name of a file's seal, before the file's name (``mrcert.sealed.certify.tsv``)."""
@@ -33,13 +34,9 @@ def tag(name: str) -> str:
 
 
 def seal_file(path: Path | str) -> str:
-    """The seal of a file's content (read in blocks)."""
-    h, size = hashlib.sha256(), 0
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-            size += len(block)
-    return f"{size} {h.hexdigest()}"
+    """The seal of a file's content."""
+    size, digest = sha256_file(path)
+    return f"{size} {digest}"
 
 
 def sealed_files(task: str, log: str | None) -> tuple[str, ...]:

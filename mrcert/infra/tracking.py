@@ -154,8 +154,9 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
     parent_id = info.get("run_id")
     mlflow = configure(cfg.tracking)
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
-    previous, lock = resumable(cfg, ident)
-    close_stale(cfg, ident, mlflow.MlflowClient(), previous.info.run_id if previous is not None else None)
+    interrupted = find_runs(cfg.tracking, ident.key, finished=False)  # RUNNING or KILLED, newest first
+    previous, lock = resumable(cfg, interrupted)
+    close_stale(interrupted, mlflow.MlflowClient(), previous.info.run_id if previous is not None else None)
     if previous is not None:
         resumed = Path(previous.data.tags["mrcert.output_dir"])
         log.info("resuming MLflow run %s from %s", previous.info.run_id, resumed)

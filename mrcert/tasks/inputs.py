@@ -3,7 +3,8 @@
 A missing, unreadable or not regular (a folder, a device) checkpoint, point cloud, poses file
 or imported log stops the command in seconds with one line naming the key and the file,
 before any data is prepared and before an MLflow run is created (so no FAILED run is left
-behind). The keys checked are the ones a task's identity declares as files (:class:`mrcert.infra.identity.Identity`).
+behind). The keys checked are the ones a task's identity declares as files
+(:class:`mrcert.infra.identity.Identity`).
 """
 
 from __future__ import annotations
@@ -18,44 +19,46 @@ from mrcert.errors import MrcertError
 from mrcert.infra.identity import Identity
 
 
-def _checkpoint(path: Path) -> None:
-    from mrcert.infra.checkpoints import read_checkpoint
+def _checkpoint(path: Path, cfg: DictConfig) -> None:
+    """A mrcert checkpoint, trained on the data set's classes."""
+    from mrcert.data.sources import load
+    from mrcert.infra.checkpoints import check_classes, read_checkpoint
 
-    read_checkpoint(path)
+    check_classes(read_checkpoint(path), load(cfg.data).classes, path)
 
 
-def _cloud(path: Path) -> None:
+def _cloud(path: Path, cfg: DictConfig) -> None:
     from mrcert.scenes.scene import read_point_cloud
 
     if path.is_file():
         read_point_cloud(path)
 
 
-def _poses(path: Path) -> None:
+def _poses(path: Path, cfg: DictConfig) -> None:
     from mrcert.data.custom import read_poses
 
     read_poses(path)
 
 
-def _log(path: Path) -> None:
+def _log(path: Path, cfg: DictConfig) -> None:
     from mrcert.reporting.certify_log import read_log
 
     read_log(path)
 
 
-def _store(path: Path) -> None:
+def _store(path: Path, cfg: DictConfig) -> None:
     from mrcert.tasks.gather import other_store
 
     other_store(str(path))
 
 
-def _onnx(path: Path) -> None:
+def _onnx(path: Path, cfg: DictConfig) -> None:
     from mrcert.formats.onnx_model import read_onnx
 
     read_onnx(path)
 
 
-CHECKS: dict[str, Callable[[Path], None]] = {
+CHECKS: dict[str, Callable[[Path, DictConfig], None]] = {
     "model.checkpoint": _checkpoint,
     "data.path": _cloud,  # a cloud file; the released MetaRoom is a folder, checked when opened
     "data.poses": _poses,
@@ -81,14 +84,15 @@ def check_classes(data: DictConfig) -> None:
 
 def check_inputs(cfg: DictConfig, identity: Identity) -> None:
     """Raise a one-line :class:`MrcertError` for unknown class names, then for the first file
-    input of ``cfg`` that is missing or unreadable (``runs:/`` URIs are checked against the
-    store when bound)."""
+    input of ``cfg`` that is missing or unreadable; a checkpoint file last, once the data's files
+    passed, as a mrcert checkpoint of the data set's classes (``runs:/`` URIs are checked against
+    the store when bound)."""
     check_classes(cfg.data)
     if OmegaConf.select(cfg, "task.name") == "verify":  # its instances, every file they name
         from mrcert.tasks.verify import instances
 
         instances(cfg.task)
-    for key in identity.files:
+    for key in sorted(identity.files, key=lambda k: k == "model.checkpoint"):  # its classes: once the data's files pass
         value = OmegaConf.select(cfg, key, default=None)
         if value is None or value == "???" or ":/" in str(value):
             continue
@@ -96,11 +100,9 @@ def check_inputs(cfg: DictConfig, identity: Identity) -> None:
         if not path.exists():
             raise MrcertError(f"{key}={str(value)!r} does not exist")
         folder = key == "data.path" and cfg.data.get("source") == "metaroom"  # the released data set's folder
-        if key in FOLDERS:
-            pass
-        elif not (path.is_dir() if folder else path.is_file()):
-            kind = "a regular file" if not folder else "the released data set's folder"
+        if key not in FOLDERS and not (path.is_dir() if folder else path.is_file()):
+            kind = "the released data set's folder" if folder else "a regular file"
             raise MrcertError(f"{key}={str(value)!r} is not {kind}: give {kind}")
         if not os.access(path, os.R_OK):
             raise MrcertError(f"{key}={str(value)!r} cannot be read: permission denied (check its permissions)")
-        CHECKS.get(key, lambda p: None)(path)
+        CHECKS.get(key, lambda p, c: None)(path, cfg)
