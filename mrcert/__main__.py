@@ -24,6 +24,7 @@ from mrcert.infra.key_migration import migrate_once
 from mrcert.infra.locks import key_lock
 from mrcert.infra.resumption import log_files_under
 from mrcert.infra.stages import LiveRuns, resolve
+from mrcert.infra.store import is_locked, locked
 from mrcert.infra.sweeps import fail_parent
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext, finished_run, task_run
@@ -101,10 +102,13 @@ PERMISSION_ERRORS = (errno.EACCES, errno.EPERM)
 STORAGE_ERRORS = (errno.EROFS, errno.ENOSPC, errno.EDQUOT)
 
 
-def _user_error(exc: BaseException) -> str | None:
-    """The one-line message for an error the user can fix, else None (a bug: keep the traceback)."""
+def _user_error(exc: BaseException, store: str = "") -> str | None:
+    """The one-line message for an error the user can fix, else None (a bug: keep the traceback);
+    ``store``: the tracking URI in use."""
     if isinstance(exc, MrcertError):
         return str(exc)
+    if type(exc).__name__ == "MlflowException" and is_locked(exc):
+        return str(locked(store))
     if isinstance(exc, OSError) and exc.errno in PERMISSION_ERRORS:
         where = f" {exc.filename}" if exc.filename else ""
         return f"permission denied on{where} ({exc.strerror}): check its permissions, or point paths.outputs elsewhere"
@@ -120,7 +124,7 @@ def _hydra_main(cfg: DictConfig) -> dict[str, Any]:
     try:
         return run_task(cfg, Path(hc.runtime.output_dir))
     except Exception as exc:
-        message = _user_error(exc)
+        message = _user_error(exc, str(cfg.tracking.uri))
         if message is None or hc.mode == RunMode.MULTIRUN:
             raise  # a bug keeps its traceback; in a multirun Hydra records the job and goes on
         discard_launch(Path(hc.runtime.output_dir))

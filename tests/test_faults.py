@@ -16,7 +16,7 @@ import torch
 
 from mrcert.__main__ import run_task
 from mrcert.errors import MrcertError
-from mrcert.infra.store import FileLock, ensure_sqlite_store
+from mrcert.infra.store import FileLock, ensure_sqlite_store, uninterrupted
 from mrcert.reporting.certify_log import read_log
 from tests.conftest import (
     PER_RUN,
@@ -190,6 +190,75 @@ def test_ctrl_c_is_one_line_and_the_run_is_killed(checkpoints, tmp_path):
     assert last == "mrcert: interrupted; the run is marked KILLED and the same command resumes it"
     (run,) = store_runs(tmp_path)
     assert run.info.status == "KILLED"
+
+
+def test_a_signal_during_a_store_write_waits_for_the_write(monkeypatch):
+    """Ctrl-C or SIGTERM arriving while a store write runs is delivered when the write ends,
+    through the handler that was in place."""
+    from mrcert.__main__ import Terminated, _terminate
+
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with uninterrupted():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            done.append("write")
+    assert done == ["write"] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    before = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        with pytest.raises(Terminated), uninterrupted():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            done.append("write")
+        assert done == ["write", "write"] and signal.getsignal(signal.SIGTERM) is _terminate
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def test_ctrl_c_in_the_middle_of_recording_a_row_keeps_the_row_and_the_time(checkpoints, tmp_path, monkeypatch):
+    """Ctrl-C landing inside the write of a row's seal: the seal is recorded whole, the run is
+    closed KILLED with its working time, and the same command resumes it without computing
+    that row again."""
+    real = mlflow.set_tag
+
+    def ctrl_c_mid_write(key, value):
+        if key == "mrcert.sealed.certify.tsv":
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        real(key, value)
+
+    cfg = compose_cfg(certify_args(checkpoints["a"], n=40), tmp_path)
+    monkeypatch.setattr(mlflow, "set_tag", ctrl_c_mid_write)
+    with pytest.raises(KeyboardInterrupt):
+        run_task(cfg, tmp_path / "runs" / "certify")
+    monkeypatch.undo()
+    (run,) = store_runs(tmp_path)
+    log = tmp_path / "runs" / "certify" / "certify.tsv"
+    assert run.info.status == "KILLED" and len(read_log(log)) == 1
+    assert int(run.data.tags["mrcert.sealed.certify.tsv"].split()[0]) == log.stat().st_size
+    assert run.data.metrics["segments"] == run.data.metrics["timed_segments"] == 1
+    run_task(compose_cfg(certify_args(checkpoints["a"], n=40), tmp_path), tmp_path / "runs" / "again")
+    (run,) = store_runs(tmp_path)
+    assert run.info.status == "FINISHED" and read_log(log)["idx"].tolist() == [0, 1, 2, 3]
+
+
+def test_a_store_locked_by_a_stopped_process_is_one_line(tmp_path):
+    """Another process holding the SQLite store's write lock (suspended mid-write): one line
+    naming the store and what to do, no traceback, no run."""
+    import sqlite3
+
+    ensure_sqlite_store(tmp_path / "mlflow.db")
+    holder = sqlite3.connect(tmp_path / "mlflow.db")
+    holder.execute("BEGIN EXCLUSIVE")
+    try:
+        proc = run_cli(["task=render", "data=testscene"], tmp_path)
+    finally:
+        holder.rollback()
+        holder.close()
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith(f"mrcert: error: the MLflow store sqlite:///{tmp_path}/mlflow.db stayed locked"), line
+    assert not store_runs(tmp_path)
 
 
 def test_a_resumed_run_counts_its_working_time_not_the_time_it_was_down(checkpoints, tmp_path):

@@ -1,8 +1,10 @@
 """Where every number comes from: a run is reused, resumed or looked up only by its run key,
 through the command line and the task API against a real SQLite store."""
 
+import contextlib
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -81,6 +83,20 @@ def test_skip_finished_reuses_only_a_run_of_the_same_model_and_ignores_batch_siz
         assert all(f"git:{head.stdout.strip()}" in r.data.tags["mrcert.code_version"] for r in done)
 
 
+def row_sealed(out: Path) -> bool:
+    """Whether a certify log has a row and its seal is committed to the store (the writer is then
+    computing its next image, holding no lock on the store)."""
+    logs = list(out.glob("runs/certify/*/certify.tsv"))
+    if not logs or len(logs[0].read_text().splitlines()) < 2 or not (out / "mlflow.db").exists():
+        return False
+    with contextlib.closing(sqlite3.connect(out / "mlflow.db", timeout=1)) as db:
+        try:
+            found = db.execute("SELECT value FROM tags WHERE key = 'mrcert.sealed.certify.tsv'").fetchall()
+        except sqlite3.OperationalError:  # the writer is in a write: look again
+            return False
+    return any(int(value.split()[0]) == logs[0].stat().st_size for (value,) in found)
+
+
 def test_a_run_held_by_a_live_process_is_never_resumed_and_a_killed_one_is(trained, tmp_path):
     args = [*TINY, "task=certify", "task.n0=8", "task.n=1500", "task.max=2", "task.skip=1",
             f"model.checkpoint={checkpoint(trained, 'best.pt')}"]  # fmt: skip
@@ -90,11 +106,9 @@ def test_a_run_held_by_a_live_process_is_never_resumed_and_a_killed_one_is(train
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     deadline = time.time() + 240
-    while time.time() < deadline and not any(
-        len(p.read_text().splitlines()) >= 2 for p in tmp_path.glob("runs/certify/*/certify.tsv")
-    ):
+    while time.time() < deadline and not row_sealed(tmp_path):
         time.sleep(0.05)
-    first.send_signal(signal.SIGSTOP)  # alive, holding its run, writing nothing
+    first.send_signal(signal.SIGSTOP)  # alive, holding its run, writing nothing (between two images)
     try:
         (log,) = tmp_path.glob("runs/certify/*/certify.tsv")
         rows = log.read_text()

@@ -15,6 +15,7 @@ from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
 from mrcert.infra.locks import run_lock
+from mrcert.infra.store import uninterrupted
 
 
 def resumable(cfg: DictConfig, interrupted: list):
@@ -105,9 +106,10 @@ def timed_segment(mlflow, previous) -> Iterator[None]:
     try:
         yield
     finally:
-        mlflow.log_metrics(
-            {
-                "active_seconds": before.get("active_seconds", 0.0) + time.monotonic() - t0,
-                "timed_segments": before.get("timed_segments", 0) + 1,
-            }
-        )
+        with uninterrupted():
+            mlflow.log_metrics(
+                {
+                    "active_seconds": before.get("active_seconds", 0.0) + time.monotonic() - t0,
+                    "timed_segments": before.get("timed_segments", 0) + 1,
+                }
+            )

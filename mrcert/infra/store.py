@@ -9,22 +9,52 @@
   transient errors during a run).
 * :class:`FileLock` is the cross-process lock: ``flock``, released by the kernel when its
   process dies, so a killed process never leaves a stale lock.
+* :func:`uninterrupted` holds Ctrl-C and SIGTERM back while a write to the store completes: a
+  SQLite transaction cut half-way keeps the store locked for the rest of the process, so the
+  run could not be closed KILLED nor its working time logged.
 """
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import functools
 import os
+import signal
 import socket
 import sqlite3
+import threading
 import urllib.error
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 from mrcert.errors import MrcertError
 
 PROBE_TIMEOUT_S = 5.0
+
+
+@contextlib.contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Run the block whole: SIGINT and SIGTERM arriving meanwhile are delivered when it ends
+    (their handlers then run as they would have; the main thread only, where Python runs them)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[tuple[int, object]] = []
+    numbers = (signal.SIGINT, signal.SIGTERM)
+    before = {n: signal.signal(n, lambda signum, frame: held.append((signum, frame))) for n in numbers}
+    try:
+        yield
+    finally:
+        for n, handler in before.items():
+            signal.signal(n, handler)
+        for signum, frame in held[:1]:
+            handler = before[signum]
+            if callable(handler):
+                handler(signum, frame)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
 
 
 class FileLock:
@@ -71,6 +101,21 @@ class FileLock:
         self.release()
 
 
+def is_locked(exc: BaseException) -> bool:
+    """Whether ``exc`` (SQLite's, or MLflow's around it) says another process held the store's
+    lock for longer than SQLite waits."""
+    return "database is locked" in str(exc)
+
+
+def locked(store: str) -> MrcertError:
+    """The one-line error for a store that another process keeps locked."""
+    return MrcertError(
+        f"the MLflow store {store} stayed locked by another process: one suspended or stuck in a write "
+        "(Ctrl-Z, SIGSTOP, a hung disk); resume or end it and rerun, or run many jobs at once through a "
+        "tracking server (tracking=server)"
+    )
+
+
 @functools.cache
 def schema_head() -> str:
     """The schema revision this MLflow writes (alembic head)."""
@@ -84,7 +129,9 @@ def schema_version(db: Path) -> str | None:
     try:
         with sqlite3.connect(f"file:{db}?mode=rw", uri=True) as conn:
             row = conn.execute("SELECT version_num FROM alembic_version").fetchone()
-    except sqlite3.Error:
+    except sqlite3.Error as exc:
+        if is_locked(exc):
+            raise locked(f"sqlite:///{db}") from None
         return None
     return row[0] if row else None
 
@@ -97,6 +144,8 @@ def damage(db: Path) -> str | None:
         with sqlite3.connect(f"file:{db}?mode=rw", uri=True) as conn:
             found = [row[0] for row in conn.execute("PRAGMA quick_check")]
     except sqlite3.Error as exc:
+        if is_locked(exc):
+            raise locked(f"sqlite:///{db}") from None
         return str(exc)
     return None if found == ["ok"] else "; ".join(found[:2])
 

@@ -26,6 +26,7 @@ from mrcert.infra.locks import run_lock
 from mrcert.infra.resumption import adopt, close_stale, resumable, timed_segment
 from mrcert.infra.runtime import code_version, machine
 from mrcert.infra.seals import sealed_files, seals
+from mrcert.infra.store import uninterrupted
 from mrcert.infra.sweeps import parent_info
 from mrcert.infra.tasks import TASKS
 
@@ -80,12 +81,17 @@ class Tracker:
             mlflow.set_tags(tags)
 
     def record(self) -> Callable[[str, str], None] | None:
-        """What a per-image log records its seal through (None when tracking is off)."""
+        """What a per-image log records its seal through (None when tracking is off): a tag
+        written whole, never cut by Ctrl-C."""
         if not self.enabled:
             return None
         import mlflow
 
-        return mlflow.set_tag
+        def set_tag(key: str, value: str) -> None:
+            with uninterrupted():
+                mlflow.set_tag(key, value)
+
+        return set_tag
 
     def log_figure(self, figure, artifact_file: str) -> None:
         """A matplotlib figure, shown by MLflow's UI with the run."""
@@ -195,9 +201,11 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
                     earlier = dict(previous.data.tags) if previous is not None else {}
                     yield Tracker(output_dir, run.info.run_id, previous is not None, ident.key, earlier)
                 task = TASKS[str(cfg.task.name)]
-                mlflow.set_tags(seals(output_dir, sealed_files(str(cfg.task.name), task.log)))
+                with uninterrupted():
+                    mlflow.set_tags(seals(output_dir, sealed_files(str(cfg.task.name), task.log)))
             except KeyboardInterrupt:
-                mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
+                with uninterrupted():
+                    mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
                 raise
             except BaseException as exc:
                 with contextlib.suppress(Exception):  # the reason, in the UI (never hiding the error itself)
