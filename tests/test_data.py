@@ -3,6 +3,7 @@
 import json
 import os
 import pickle
+import re
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import open3d as o3d
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from PIL import Image
 
 from mrcert.core.crop import CropBound
@@ -449,3 +451,122 @@ def test_a_change_of_the_rendered_scenes_forces_a_generator_version_bump(tmp_pat
             f"the rendered {name} scenes changed but GENERATOR_VERSION is still {version}: bump it in "
             "mrcert/data/cache.py (so no old cache entry is reused) and record the new fingerprint"
         )
+
+
+def test_surroundings_settings_build_the_scene_they_name(tmp_path, monkeypatch):
+    """``data.surroundings`` (the parts around the object, the room's style) and ``data.ambient``
+    (each one's light), each building what it says; at their as-built values they change neither
+    a run key nor the cached images' identity (keys made before they existed stay valid)."""
+    from mrcert.infra.identity import defining_values, digest
+    from mrcert.infra.tasks import TASKS
+    from mrcert.scenes import textures
+
+    def source(*overrides):
+        return load(data_cfg("metaroom_synth", [*TINY, *overrides], tmp_path)).source
+
+    built = source()
+    room, table = built.part("room"), built.part("table")
+    assert built.surroundings == ("room", "table")
+    alone, on_table = source("data.surroundings.parts=[]"), source("data.surroundings.parts=[table]")
+    assert len(alone.background[0]) == 0
+    assert np.array_equal(on_table.background[0], table[0]) and np.array_equal(on_table.background[1], table[1])
+    # The plain room: the room's first six surfaces (floor, ceiling, walls), nothing on the walls,
+    # the floor roughcast where the furnished room has its rug.
+    plain = source("data.surroundings.room=plain").part("room")
+    k = len(plain[0])
+    assert 0 < k < len(room[0]) and np.array_equal(plain[0], room[0][:k])
+    floor = np.isclose(room[0][:k, 2], metaroom.FLOOR_Z)
+    rug = floor & (np.abs(room[0][:k, :2]) < metaroom.RUG).all(axis=1)
+    assert rug.any() and np.array_equal(plain[1][~rug], room[1][:k][~rug])
+    assert (plain[1][rug] != room[1][:k][rug]).any(axis=1).mean() > 0.5
+    # Without the rug: the floor's rug area alone differs; the paper's room: the rug and the window.
+    no_rug = source("data.surroundings.room=no_rug").part("room")
+    assert np.array_equal(no_rug[0], room[0]) and np.array_equal(no_rug[1][:k], plain[1])
+    assert np.array_equal(no_rug[1][k:], room[1][k:])
+    paper = source("data.surroundings.room=paper").part("room")
+    assert np.array_equal(paper[0], room[0])
+    differ = (paper[1] != room[1]).any(axis=1)
+    east = np.isclose(room[0][:, 0], metaroom.HALF, atol=0.02) & (room[0][:, 2] > -0.01) & (room[0][:, 2] < 1.21)
+    assert (
+        differ[rug.nonzero()[0]].mean() > 0.5
+        and differ[east].any()
+        and not differ[~np.pad(rug, (0, len(room[0]) - k)) & ~east].any()
+    )
+    # Ambient light 1.0: no shading, so the colours do not depend on where the light comes from.
+    flat = source("data.ambient.room=1.0", "data.ambient.object=1.0")
+    flat_room, flat_object, shaded_object = flat.part("room")[1], flat.object(0)[1], built.object(0)[1]
+    monkeypatch.setattr(textures, "LIGHT", -textures.LIGHT)
+    relit = source("data.ambient.room=1.0", "data.ambient.object=1.0")
+    assert np.array_equal(relit.part("room")[1], flat_room) and np.array_equal(relit.object(0)[1], flat_object)
+    assert not np.array_equal(source().part("room")[1], room[1])  # as built, the light shows
+    assert not np.array_equal(source().object(0)[1], shaded_object)
+    monkeypatch.undo()
+    # Keys: as built, the same as without the settings; another value, another key and cache.
+    cfg = data_cfg("metaroom_synth", TINY, tmp_path)
+    identity = TASKS["train"].identity
+
+    def key(data):
+        return digest(defining_values({"task": {"name": "train"}, "data": data}, identity))
+
+    bare = OmegaConf.to_container(cfg, resolve=True)
+    del bare["surroundings"], bare["ambient"], bare["protocol"]["train"]["pitch_law"]
+    assert key(OmegaConf.to_container(cfg, resolve=True)) == key(bare)
+    assert key(
+        OmegaConf.to_container(
+            data_cfg("metaroom_synth", [*TINY, "data.surroundings.room=plain"], tmp_path), resolve=True
+        )
+    ) != key(bare)
+    assert not {"surroundings", "ambient"} & set(load(cfg).identity())
+    assert "pitch_law" not in load(cfg).identity()["protocol"]["train"]
+    assert (
+        load(data_cfg("metaroom_synth", [*TINY, "data.ambient.object=1.0"], tmp_path)).identity()
+        != load(cfg).identity()
+    )
+    assert (
+        load(data_cfg("metaroom_synth", [*TINY, "data.surroundings.parts=[]"], tmp_path)).identity()
+        != load(cfg).identity()
+    )
+
+
+@pytest.mark.parametrize(
+    "name, override, message",
+    [
+        ("metaroom_synth", "data.surroundings.parts=[rug]", "data.surroundings.parts=['rug'] names a part"),
+        ("metaroom_synth", "data.surroundings.room=castle", "data.surroundings.room='castle' is not a room style"),
+        (
+            "metaroom_synth",
+            "data.ambient.room=2.0",
+            "data.ambient.room=2.0 is not allowed: a share of ambient light in [0, 1]",
+        ),
+        ("tabletop_synth", "data.surroundings.room=plain", "allowed: none (tabletop_synth has no room)"),
+        ("tabletop_synth", "data.ambient.table=1.0", "tabletop_synth sets the light of nothing"),
+        ("metaroom_synth", "data.protocol.train.pitch_law=sphere", "allowed: angle, area"),
+    ],
+)
+def test_a_surroundings_setting_a_scene_cannot_build_is_one_line(name, override, message, tmp_path):
+    from mrcert.tasks.inputs import check_classes
+
+    with pytest.raises(MrcertError, match=re.escape(message)):
+        check_classes(data_cfg(name, [*TINY[1:], override], tmp_path))
+
+
+def test_the_pitch_law_draws_pitches_uniform_in_angle_or_over_the_sphere():
+    """``angle``: the pitch uniform in degrees; ``area``: its sine uniform (the hemisphere's
+    area), checked by Kolmogorov-Smirnov against each law and against the other."""
+    from scipy import stats
+
+    from mrcert.data.protocols import sample_poses
+
+    ranges = {"yaw": (0.0, 360.0), "pitch": (0.0, 90.0), "roll": (0.0, 0.0), "radius": (2.8, 2.8)}
+    for law in ("angle", "area"):
+        pitch = sample_poses(4000, ranges, np.random.default_rng(1), pitch_law=law).params[:, 1]
+        uniform_angle = stats.kstest(pitch / 90.0, "uniform").pvalue
+        uniform_sine = stats.kstest(np.sin(np.deg2rad(pitch)), "uniform").pvalue
+        assert (uniform_angle, uniform_sine)[law == "area"] > 0.01 and (uniform_angle, uniform_sine)[
+            law == "angle"
+        ] < 1e-6
+    # As built, the draws are those of every other quantity: the same generator, the same numbers.
+    a = sample_poses(50, ranges, np.random.default_rng(2)).params
+    rng = np.random.default_rng(2)
+    rng.uniform(0.0, 360.0, size=100)  # the yaws of the first batch (twice the poses asked for)
+    assert np.array_equal(a[:, 1], rng.uniform(0.0, 90.0, size=100)[:50])

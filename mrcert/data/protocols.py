@@ -85,6 +85,16 @@ def separated(candidates: np.ndarray, tests: np.ndarray, gaps: dict[str, float],
     return far.all(axis=1)
 
 
+PITCH_LAWS = ("angle", "area")
+
+
+def _draw(quantity: str, bounds: tuple[float, float], size: int, rng: np.random.Generator, law: str) -> np.ndarray:
+    if quantity == "pitch" and law == "area":
+        low, high = np.sin(np.deg2rad(bounds))
+        return np.rad2deg(np.arcsin(rng.uniform(low, high, size=size)))
+    return rng.uniform(*bounds, size=size)
+
+
 def sample_poses(
     n: int,
     ranges: dict[str, tuple[float, float]],
@@ -95,14 +105,19 @@ def sample_poses(
     max_camera_z: float | None = None,
     target=(0.0, 0.0, 0.0),
     max_rounds: int = 1000,
+    pitch_law: str = "angle",
 ) -> PoseSet:
     """``n`` poses uniform in ``ranges`` (by rejection: separated by ``rule`` from each set of
     held-out poses in ``apart`` by that set's gaps, camera below ``max_camera_z``).
-    Deterministic for a given generator state."""
+    ``pitch_law``: ``angle`` draws the pitch uniformly in angle like the other quantities;
+    ``area``, uniformly over the sphere's area (its sine uniform), so that low pitches are
+    commoner. Deterministic for a given generator state."""
+    if pitch_law not in PITCH_LAWS:
+        raise ValueError(f"pitch law {pitch_law!r} is not one of {PITCH_LAWS}")
     kept: list[np.ndarray] = []
     count = 0
     for _ in range(max_rounds):
-        batch = np.column_stack([rng.uniform(*ranges[q], size=max(2 * n, 64)) for q in QUANTITIES])
+        batch = np.column_stack([_draw(q, ranges[q], max(2 * n, 64), rng, pitch_law) for q in QUANTITIES])
         ok = np.ones(len(batch), bool)
         for others, gaps in apart:
             ok &= separated(batch, others, gaps, rule)

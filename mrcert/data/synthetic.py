@@ -20,33 +20,54 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from mrcert.data.datasets import PosedCloudData, Split
-from mrcert.data.protocols import PoseSet, ring_poses, sample_poses
+from mrcert.data.protocols import PITCH_LAWS, PoseSet, ring_poses, sample_poses
 from mrcert.errors import MrcertError
 from mrcert.scenes import metaroom, tabletop
+
+Cloud = tuple[np.ndarray, np.ndarray]
 
 
 @dataclass(frozen=True)
 class Family:
-    """A synthetic scene family: its classes, the scene around the object (named parts), the
-    object, and how high a camera may go (None: no ceiling)."""
+    """A synthetic scene family: its classes, the parts of the scene around the object (each
+    built from the ``data`` config and the room's style), the object (from its class name and
+    density), how high a camera may go (None: no ceiling), its room styles (none: no room)."""
 
     classes: tuple[str, ...]
-    background: Callable[[DictConfig], dict[str, tuple[np.ndarray, np.ndarray]]]
-    object: Callable[[str, float], tuple[np.ndarray, np.ndarray]]
+    parts: dict[str, Callable[..., Cloud]]
+    object: Callable[..., Cloud]
     max_camera_z: float | None
+    rooms: tuple[str, ...] = ()
+    lit: tuple[str, ...] = ()
+    """What ``data.ambient`` may set (parts, ``object``): each builder takes ``ambient=``."""
 
 
 FAMILIES = {
     "metaroom_synth": Family(
         tuple(metaroom.CLASSES),
-        lambda d: {"room": metaroom.room(d.room_density, d.seed), "table": metaroom.table(d.density)},
+        {
+            "room": lambda d, room, **light: metaroom.room(d.room_density, d.seed, room, **light),
+            "table": lambda d, room, **light: metaroom.table(d.density, **light),
+        },
         metaroom.object_cloud,
         metaroom.CEILING_Z - 0.05,  # cameras stay 5 cm below the ceiling
+        metaroom.ROOMS,
+        ("room", "table", "object"),
     ),
     "tabletop_synth": Family(
-        tuple(tabletop.CLASSES), lambda d: {"table": tabletop.table(d.room_density)}, tabletop.shape_cloud, None
+        tuple(tabletop.CLASSES),
+        {"table": lambda d, room: tabletop.table(d.room_density)},
+        tabletop.shape_cloud,
+        None,
     ),
 }
+
+AS_BUILT = {"parts": None, "room": None}
+"""``data.surroundings`` as built: every part, the family's first room style."""
+
+
+def _share(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and 0.0 <= value <= 1.0
 
 
 SPLITS = ("test", "train", "validation")  # their index seeds each split's generator
@@ -54,6 +75,10 @@ SPLITS = ("test", "train", "validation")  # their index seeds each split's gener
 
 def _ranges(train: DictConfig) -> dict[str, tuple[float, float]]:
     return {q: tuple(train[f"{q}_range"]) for q in ("yaw", "pitch", "roll", "radius")}
+
+
+def _share(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and 0.0 <= value <= 1.0
 
 
 class SyntheticSource:
@@ -68,37 +93,91 @@ class SyntheticSource:
         if unknown:
             raise MrcertError(f"data.classes has unknown classes {unknown}; allowed: {', '.join(known)}")
         self.classes: list[str] = sorted(chosen)
-        self._last: tuple[int, tuple[np.ndarray, np.ndarray]] | None = None
+        self.settings = self._check_surroundings(data.get("surroundings") or {})
+        self.ambient = self._check_ambient(data.get("ambient") or {})
+        law = data.protocol.train.get("pitch_law", "angle")
+        if law not in PITCH_LAWS:
+            raise MrcertError(
+                f"data.protocol.train.pitch_law={law!r} is not allowed; allowed: {', '.join(PITCH_LAWS)} "
+                "(uniform in angle, or over the sphere's area)"
+            )
+        self._parts: dict[str, Cloud] = {}
+        self._last: tuple[int, Cloud] | None = None
+
+    def _check_surroundings(self, given: Any) -> dict[str, Any]:
+        """``data.surroundings`` checked against the family: one line naming the value and what is allowed."""
+        settings = AS_BUILT | (OmegaConf.to_container(given) if OmegaConf.is_config(given) else dict(given))
+        parts, room = settings["parts"], settings["room"]
+        if parts is not None and any(p not in self.family.parts for p in parts):
+            raise MrcertError(
+                f"data.surroundings.parts={parts} names a part {self.data.name} does not have; "
+                f"allowed: a list of {', '.join(self.family.parts)} ([] for the object alone), or null for all"
+            )
+        if room is not None and room not in self.family.rooms:
+            allowed = ", ".join(self.family.rooms) if self.family.rooms else f"none ({self.data.name} has no room)"
+            raise MrcertError(
+                f"data.surroundings.room={room!r} is not a room style of {self.data.name}; allowed: {allowed}"
+            )
+        return settings
+
+    def _check_ambient(self, given: Any) -> dict[str, float]:
+        """``data.ambient``: the shares set (null: as built), each a part's or the object's that the
+        family lights, in [0, 1]."""
+        shares = OmegaConf.to_container(given) if OmegaConf.is_config(given) else dict(given)
+        shares = {k: v for k, v in shares.items() if v is not None}
+        for what, share in shares.items():
+            if what not in self.family.lit:
+                lit = ", ".join(self.family.lit) or "nothing"
+                raise MrcertError(
+                    f"data.ambient.{what}={share} is not allowed: {self.data.name} sets the light of {lit}"
+                )
+            if not _share(share):
+                raise MrcertError(
+                    f"data.ambient.{what}={share} is not allowed: a share of ambient light in [0, 1] "
+                    "(1: unshaded), or null as built"
+                )
+        return {k: float(v) for k, v in shares.items()}
+
+    def _light(self, what: str) -> dict[str, float]:
+        return {"ambient": self.ambient[what]} if what in self.ambient else {}
 
     # --- scenes -----------------------------------------------------------------------------
-    @cached_property
-    def parts(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """The scene around the object, by part (``room``, ``table``): (points, colours), world frame."""
-        return self.family.background(self.data)
+    def part(self, name: str) -> Cloud:
+        """One part of the scene around the object (``room``, ``table``): (points, colours), world
+        frame, in ``data.surroundings``' room style and ``data.ambient``'s light."""
+        if name not in self.family.parts:
+            raise MrcertError(f"{self.data.name} has no scene part {name!r}; its parts: {', '.join(self.family.parts)}")
+        if name not in self._parts:
+            room = self.settings["room"] or (self.family.rooms[0] if self.family.rooms else None)
+            self._parts[name] = self.family.parts[name](self.data, room, **self._light(name))
+        return self._parts[name]
+
+    @property
+    def surroundings(self) -> tuple[str, ...]:
+        """The parts around the object in every view (``data.surroundings.parts``; null: all)."""
+        chosen = self.settings["parts"]
+        return tuple(self.family.parts) if chosen is None else tuple(str(p) for p in chosen)
 
     @cached_property
-    def background(self) -> tuple[np.ndarray, np.ndarray]:
+    def background(self) -> Cloud:
         """Everything but the object: (points, colours) in the world frame."""
-        return self.only(tuple(self.parts))
+        return self.only(self.surroundings)
 
-    def only(self, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    def only(self, parts: tuple[str, ...]) -> Cloud:
         """The named ``parts`` of the scene around the object, concatenated (possibly none)."""
-        unknown = [p for p in parts if p not in self.parts]
-        if unknown:
-            raise MrcertError(f"{self.data.name} has no scene part {unknown}; its parts: {', '.join(self.parts)}")
-        chosen = [self.parts[p] for p in parts]
+        chosen = [self.part(p) for p in parts]
         if not chosen:
             return np.empty((0, 3)), np.empty((0, 3), np.float32)
         return np.concatenate([p for p, _ in chosen]), np.concatenate([c for _, c in chosen])
 
-    def scene(self, label: int, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    def scene(self, label: int, parts: tuple[str, ...]) -> Cloud:
         """Class ``label``'s object with only the named ``parts`` around it (world frame)."""
         bp, bc = self.only(parts)
         op, oc = self.object(label)
         return np.concatenate([bp, op]), np.concatenate([bc, oc])
 
     def object(self, label: int) -> tuple[np.ndarray, np.ndarray]:
-        return self.family.object(self.classes[label], self.data.density)
+        return self.family.object(self.classes[label], self.data.density, **self._light("object"))
 
     def cloud(self, label: int) -> tuple[np.ndarray, np.ndarray]:
         """The scene of class ``label``: background + object, world frame (the last one is kept)."""
@@ -147,6 +226,7 @@ class SyntheticSource:
             rule=str(p.separation_rule),
             max_camera_z=self.family.max_camera_z,
             target=self._target(),
+            pitch_law=str(p.train.get("pitch_law", "angle")),
         )
 
     def has_split(self, name: str) -> bool:
@@ -186,7 +266,12 @@ class SyntheticData(PosedCloudData):
         return self.source.has_split(name)
 
     def identity(self) -> dict[str, Any]:
+        """What the cached images depend on; surroundings, light and pitch law as built add nothing,
+        so that caches made before they were settings stay valid."""
         keep = ("source", "seed", "density", "room_density", "protocol")
-        return {
-            k: OmegaConf.to_container(self.data[k]) if OmegaConf.is_config(self.data[k]) else self.data[k] for k in keep
-        } | {"classes": self.classes}
+        out = {k: OmegaConf.to_container(v) if OmegaConf.is_config(v := self.data[k]) else v for k in keep}
+        if out["protocol"].get("train", {}).get("pitch_law") == "angle":
+            del out["protocol"]["train"]["pitch_law"]
+        source = self.source
+        changed = {"surroundings": source.settings} if source.settings != AS_BUILT else {}
+        return out | {"classes": self.classes} | changed | ({"ambient": source.ambient} if source.ambient else {})

@@ -42,6 +42,20 @@ COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_di
 (``data.extent``), and an experiment's settings of single tasks (``per_task``: the task's own
 keys, which are part of its result, hold them): never part of a result."""
 
+AS_BUILT = tuple(
+    (key, value, key)
+    for key, value in (
+        ("data.surroundings.parts", None),
+        ("data.surroundings.room", None),
+        ("data.ambient.room", None),
+        ("data.ambient.table", None),
+        ("data.ambient.object", None),
+        ("data.protocol.train.pitch_law", "angle"),
+    )
+)
+"""Data settings at their as-built values, which keys made before the settings existed lack:
+ignored (``Identity.ignore_when``), so those keys stay valid."""
+
 KEY_SCHEME = ("mrcert.key_scheme", "content")
 """Tag of a run whose keys name its model by content (:mod:`mrcert.infra.stages`); a run without
 it was keyed by its train run's id, and is migrated (:mod:`mrcert.infra.key_migration`)."""
@@ -74,7 +88,7 @@ class Identity:
     method: str | None = None
 
     def ignored(self, cfg: Mapping[str, Any]) -> tuple[str, ...]:
-        extra = tuple(prefix for key, value, prefix in self.ignore_when if _get(cfg, key) == value)
+        extra = tuple(prefix for key, value, prefix in (*AS_BUILT, *self.ignore_when) if _get(cfg, key) == value)
         if self.method is not None:
             extra += unkeyed(_get(cfg, "method.name"), model=self.method == "model")
         return (*COMMON_IGNORES, *self.ignores, *extra)

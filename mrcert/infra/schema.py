@@ -172,6 +172,23 @@ class Scene:
 
 
 @dataclass
+class Surroundings:
+    """What surrounds the object in a synthetic scene (null: as built; checked against the data set)."""
+
+    parts: list[str] | None = None  # the scene's parts in every view ([]: the object alone)
+    room: str | None = None  # the room's style
+
+
+@dataclass
+class Ambient:
+    """The share of ambient light of the room, the table and the object (null: as built)."""
+
+    room: float | None = None
+    table: float | None = None
+    object: float | None = None
+
+
+@dataclass
 class Synthetic:
     name: str = MISSING
     source: str = MISSING
@@ -185,6 +202,8 @@ class Synthetic:
     protocol: Any = MISSING  # pose protocol: checked by validate (ranges, counts, gaps)
     crop: Crop = field(default_factory=Crop)
     downsample: bool = MISSING
+    surroundings: Surroundings = field(default_factory=Surroundings)
+    ambient: Ambient = field(default_factory=Ambient)
     cache_dir: str = MISSING
 
 

@@ -40,9 +40,17 @@ closet behind it read as the teddy bear); a floor of many colours teaches it oth
 (docs/method.md §3)."""
 
 
-def _cloud(parts: list[Part]) -> tuple[np.ndarray, np.ndarray]:
+ROOMS = ("furnished", "no_rug", "paper", "plain")
+"""The room's versions (``room(style=...)``): ``furnished``, the room as built (a patchwork rug
+under the table; door, window, blackboard, closets, clock, paintings and photographs on the
+walls); ``no_rug``, furnished without the rug (generator 4's room); ``paper``, the paper's room:
+no rug, the window in the walls' roughcast; ``plain``, bare walls, floor and ceiling of
+roughcast plaster (docs/studies/resnet18_generalisation.md)."""
+
+
+def _cloud(parts: list[Part], ambient: float = AMBIENT) -> tuple[np.ndarray, np.ndarray]:
     points = np.concatenate([s.points for s, _ in parts])
-    colors = np.concatenate([finish(s, c, AMBIENT) for s, c in parts])
+    colors = np.concatenate([finish(s, c, ambient) for s, c in parts])
     return points, colors
 
 
@@ -75,22 +83,29 @@ def _framed(
     return [_solid(frame, frame_color), (inner_s, inner(inner_s))]
 
 
-def room(density: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Walls, floor, ceiling and the furniture on the walls."""
+def room(
+    density: float, seed: int = 0, style: str = "furnished", ambient: float = AMBIENT
+) -> tuple[np.ndarray, np.ndarray]:
+    """Walls, floor, ceiling and, but in the ``plain`` style, the furniture on the walls (``ROOMS``),
+    shaded with ``ambient`` light (1.0: unshaded, every surface its own colour)."""
+    if style not in ROOMS:
+        raise ValueError(f"unknown room style {style!r}; allowed: {', '.join(ROOMS)}")
     d = density
     parts: list[Part] = []
     floor = rect([-HALF, -HALF, FLOOR_Z], [2 * HALF, 0, 0], [0, 2 * HALF, 0], d)
     ceiling = rect([-HALF, -HALF, CEILING_Z], [0, 2 * HALF, 0], [2 * HALF, 0, 0], d)
     walls = [_wall_item(wall, 0.0, FLOOR_Z, 2 * HALF, CEILING_Z - FLOOR_Z, d, depth=0.0) for wall in WALLS]
-    on_rug = (np.abs(floor.points[:, :2]) < RUG).all(axis=1)
+    on_rug = (np.abs(floor.points[:, :2]) < (RUG if style == "furnished" else 0.0)).all(axis=1)
     parts.append((floor, np.where(on_rug[:, None], patchwork_rug(floor, RUG, seed), roughcast(floor, seed + 1))))
     parts += [(s, roughcast(s, seed + 2 + i)) for i, s in enumerate([ceiling, *walls])]
+    if style == "plain":
+        return _cloud(parts, ambient)
 
     # Door (north), window (east), blackboard (west), closets (south corners), clock (north).
     door = _wall_item("north", -1.6, FLOOR_Z, 0.9, 2.05, d, depth=0.01)
     parts.append((door, roughcast(door, seed + 7)))
     parts.append(_solid(_wall_item("north", -1.25, FLOOR_Z + 1.0, 0.1, 0.04, d, depth=0.03), (0.8, 0.75, 0.3)))
-    parts += _framed(
+    window = _framed(
         "east",
         0.3,
         0.0,
@@ -105,6 +120,9 @@ def room(density: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         ),
         border=0.06,
     )
+    if style == "paper":  # frame and pane in the walls' plaster, as the door
+        window = [(w, roughcast(w, seed + 8 + i)) for i, (w, _) in enumerate(window)]
+    parts += window
     rng = np.random.default_rng(seed)
     strokes = rng.uniform(0, 1, (6, 4))
 
@@ -166,11 +184,11 @@ def room(density: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
             canvas,
             border=0.05 if i < 2 else 0.02,
         )
-    return _cloud(parts)
+    return _cloud(parts, ambient)
 
 
-def table(density: float) -> tuple[np.ndarray, np.ndarray]:
-    """The 0.5 x 0.5 x 1 m table with its top surface at z = 0."""
+def table(density: float, ambient: float = AMBIENT) -> tuple[np.ndarray, np.ndarray]:
+    """The 0.5 x 0.5 x 1 m table with its top surface at z = 0, shaded with ``ambient`` light."""
     top = box((0, 0, -0.015), (TABLE, TABLE, 0.03), density)
     legs = [
         box((sx * 0.21, sy * 0.21, (FLOOR_Z - 0.03) / 2), (0.04, 0.04, -FLOOR_Z - 0.03), density)
@@ -178,7 +196,7 @@ def table(density: float) -> tuple[np.ndarray, np.ndarray]:
         for sy in (-1, 1)
     ]
     parts = [(s, roughcast(s, 7 + i)) for i, s in enumerate([top, *legs])]
-    return _cloud(parts)
+    return _cloud(parts, ambient)
 
 
 # --- the 20 object classes ----------------------------------------------------------------
@@ -438,10 +456,10 @@ view involved) a small CNN reached 0.47 at life size, 0.83 at twice it, 0.80 at 
 cue)."""
 
 
-def object_cloud(name: str, density: float) -> tuple[np.ndarray, np.ndarray]:
+def object_cloud(name: str, density: float, ambient: float = AMBIENT) -> tuple[np.ndarray, np.ndarray]:
     """The object standing on the table top (z = 0), centred on the z axis, ``OBJECT_SCALE``
-    times its modelled size, its surface sampled ``density`` apart."""
+    times its modelled size, its surface sampled ``density`` apart and shaded with ``ambient`` light."""
     if name not in OBJECTS:
         raise ValueError(f"unknown MetaRoom class {name!r}; allowed: {', '.join(CLASSES)}")
-    points, colors = _cloud(OBJECTS[name](density / OBJECT_SCALE))
+    points, colors = _cloud(OBJECTS[name](density / OBJECT_SCALE), ambient)
     return points * OBJECT_SCALE, colors

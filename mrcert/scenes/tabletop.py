@@ -55,10 +55,14 @@ def _extrude(outline: np.ndarray, density: float) -> Surface:
     return Surface.concat(parts)
 
 
-def table(density: float) -> tuple[np.ndarray, np.ndarray]:
+TABLE_AMBIENT = 0.6
+"""The table's share of ambient light (the rest is Lambert under ``textures.LIGHT``)."""
+
+
+def table(density: float, ambient: float = TABLE_AMBIENT) -> tuple[np.ndarray, np.ndarray]:
     top = rect([-TABLE / 2, -TABLE / 2, 0.0], [TABLE, 0, 0], [0, TABLE, 0], density)
     grain = 1 + 0.1 * noise(top.points[:, :2] * [1, 6], 0.3, 31)
-    return top.points, finish(top, rgb((0.78, 0.66, 0.5), len(grain)) * grain[:, None])
+    return top.points, finish(top, rgb((0.78, 0.66, 0.5), len(grain)) * grain[:, None], ambient)
 
 
 def shape_cloud(name: str, density: float) -> tuple[np.ndarray, np.ndarray]:
