@@ -22,7 +22,6 @@ from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.data.datasets import render_poses
 from mrcert.data.protocols import look_at_poses
 from mrcert.data.sources import load
-from mrcert.data.synthetic import FAMILIES
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.config import CONF_DIR, validate
 from mrcert.scenes import metaroom
@@ -301,7 +300,7 @@ def test_metaroom_room_and_table_share_one_material():
 def test_the_declared_scene_extent_is_the_scenes_diagonal(name, tmp_path):
     """data.extent bounds every translation (validation); it must be the scene's own size."""
     data = data_cfg(name, ["data.density=0.05", "data.room_density=0.05"], tmp_path)
-    points = np.concatenate([p for p, _ in FAMILIES[data.source].background(data).values()])
+    points = load(data).source.background[0]
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     assert diagonal <= data.extent <= diagonal + 0.01
 

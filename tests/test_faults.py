@@ -192,7 +192,16 @@ def test_ctrl_c_is_one_line_and_the_run_is_killed(checkpoints, tmp_path):
     assert run.info.status == "KILLED"
 
 
-def test_a_signal_during_a_store_write_waits_for_the_write(monkeypatch):
+@pytest.fixture
+def ctrl_c():
+    """Ctrl-C raising KeyboardInterrupt in this process, as in a user's shell (a test worker may
+    ignore SIGINT), for the test's length."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def test_a_signal_during_a_store_write_waits_for_the_write(ctrl_c):
     """Ctrl-C or SIGTERM arriving while a store write runs is delivered when the write ends,
     through the handler that was in place."""
     from mrcert.__main__ import Terminated, _terminate
@@ -215,7 +224,7 @@ def test_a_signal_during_a_store_write_waits_for_the_write(monkeypatch):
         signal.signal(signal.SIGTERM, before)
 
 
-def test_ctrl_c_in_the_middle_of_recording_a_row_keeps_the_row_and_the_time(checkpoints, tmp_path, monkeypatch):
+def test_ctrl_c_in_the_middle_of_recording_a_row_keeps_the_row_and_the_time(checkpoints, tmp_path, monkeypatch, ctrl_c):
     """Ctrl-C landing inside the write of a row's seal: the seal is recorded whole, the run is
     closed KILLED with its working time, and the same command resumes it without computing
     that row again."""
