@@ -276,7 +276,7 @@ def sealed(work: Path, env: dict, rng: random.Random) -> dict[str, int]:
 
     def certified(outputs: Path) -> float:
         mlflow.set_tracking_uri(f"sqlite:///{outputs / 'mlflow.db'}")
-        index = RunIndex.gather("mrcert", run_images)
+        index = RunIndex.load("mrcert", run_images)
         return index.metric(index.cell([*SEALED_CERTIFY, f"paths.outputs={outputs}"]), "certified_accuracy")
 
     def forge(log: Path) -> None:

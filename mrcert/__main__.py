@@ -23,11 +23,12 @@ from mrcert.infra.identity import RunIdentity
 from mrcert.infra.key_migration import migrate_once
 from mrcert.infra.locks import key_lock
 from mrcert.infra.resumption import log_files_under
+from mrcert.infra.run_store import reusable_run
 from mrcert.infra.stages import LiveRuns, resolve
 from mrcert.infra.store import is_locked, locked
 from mrcert.infra.sweeps import fail_parent
 from mrcert.infra.tasks import TASKS
-from mrcert.infra.tracking import RunContext, finished_run, task_run
+from mrcert.infra.tracking import RunContext, task_run
 from mrcert.tasks import run_function
 from mrcert.tasks.inputs import check_inputs
 
@@ -84,7 +85,7 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
         cfg, ident = bind(cfg)
         task = TASKS[cfg.task.name]
         with key_lock(cfg, ident):  # lookup and creation of this key's run: one job at a time
-            done = finished_run(cfg, ident) if task.reusable else None
+            done = reusable_run(cfg, ident) if task.reusable else None
             if done is not None:
                 log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
                 return dict(done.data.metrics)

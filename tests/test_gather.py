@@ -37,7 +37,7 @@ def gpu_store(tmp_path_factory):
 
 def index(out: Path, profile: str = "quick") -> ExperimentCells:
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    return ExperimentCells(RunIndex.gather("mrcert"), profile, overrides=(*SETTINGS, *CHEAP))
+    return ExperimentCells(RunIndex.load("mrcert"), profile, overrides=(*SETTINGS, *CHEAP))
 
 
 def gather(into: Path, source: Path) -> dict:

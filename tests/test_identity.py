@@ -2,13 +2,14 @@
 result-defining keys of each task."""
 
 import copy
+import re
 
 import pytest
 
 from mrcert.infra.config import CONF_DIR, plain
 from mrcert.infra.identity import file_identity, flatten, identify
 from mrcert.infra.tasks import TASKS
-from tests.conftest import compose_cfg
+from tests.conftest import ROOT, compose_cfg
 
 REQUIRED = {"import": ["task.path=certify.tsv"]}
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
@@ -189,3 +190,20 @@ def test_a_checkpoint_file_is_identified_by_its_content(tmp_path):
 def test_experiments_set_no_key_that_the_task_does_not_have(experiment, task):
     own = set(compose_cfg([f"task={task}"]).task)
     assert set(compose_cfg([f"experiment={experiment}", f"task={task}"]).task) == own
+
+
+def test_one_module_decides_which_run_serves_a_job():
+    """A run key's finished or interrupted runs, a model's newest train run and the finished runs
+    the tables index are asked of :mod:`mrcert.infra.run_store` alone: no other module filters
+    the store by run key or status. (A sweep's bookkeeping -- its parent's children, parents'
+    tags -- queries by parent, not to pick a run.)"""
+    asks = re.compile(r"mrcert\.key`\s*=|attributes\.status\s*[!=]=?\s*'FINISHED'|\.search_runs\(")
+    bookkeeping = {"mrcert/infra/sweeps.py", "mrcert/infra/experiment.py"}
+    found = {
+        str(p.relative_to(ROOT)): asks.findall(p.read_text())
+        for p in (ROOT / "mrcert").rglob("*.py")
+        if p.name != "run_store.py"
+    }
+    assert {path for path, hits in found.items() if hits} == bookkeeping
+    for path in bookkeeping:
+        assert found[path] == [".search_runs("], path

@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 
 from mrcert.__main__ import run_task
 from mrcert.infra.identity import KEY_SCHEME
-from mrcert.infra.key_migration import migrate
+from mrcert.infra.key_migration import migrate, migrate_once
 from mrcert.infra.stages import resolve
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
@@ -51,8 +51,10 @@ def unpack(into: Path) -> Path:
 
 
 def index(out: Path) -> RunIndex:
+    """The tables' index of the store at ``out``, opened as a launch opens it (migrated once)."""
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    return RunIndex.gather("mrcert")
+    migrate_once(mlflow.MlflowClient(), "mrcert")
+    return RunIndex.load("mrcert")
 
 
 def recorded(out: Path) -> dict[str, dict]:
@@ -77,7 +79,7 @@ def old_store(tmp_path) -> Path:
 def test_a_store_made_before_content_keys_fills_the_same_cells_and_skips_its_finished_runs(old_store):
     before = recorded(old_store)
     assert len(before) == 3
-    idx = index(old_store)  # the first use migrates it
+    idx = index(old_store)  # opening it migrates it
     for overrides in CELLS:
         cell = idx.cell(overrides)
         (run,) = cell.runs  # the very run that was made for it, with the same log
@@ -91,6 +93,23 @@ def test_a_store_made_before_content_keys_fills_the_same_cells_and_skips_its_fin
     done = run_task(cfg, old_store / "runs" / "again")
     assert done["certified_accuracy"] == idx.metric(idx.cell(CELLS[0]), "certified_accuracy")
     assert len(runs_of(old_store)[1]) == len(runs) and not (old_store / "runs" / "again").exists()
+
+
+def test_reading_a_store_never_writes_it(old_store):
+    """The tables' index and the launch's look-ups only read: an old store stays as it was
+    (its migration is the launch's, once, when it opens the store)."""
+    from mrcert.infra import run_store
+
+    db = old_store / "mlflow.db"
+    before = db.read_bytes()
+    mlflow.set_tracking_uri(f"sqlite:///{db}")
+    idx = RunIndex.load("mrcert")
+    assert len(idx.df) and not idx.cell(CELLS[0]).runs  # old keys: found only once migrated
+    tracking = OmegaConf.create(
+        {"enabled": True, "uri": f"sqlite:///{db}", "experiment": "mrcert", "artifact_location": None}
+    )
+    assert run_store.finished(tracking, "0" * 32) == [] and run_store.interrupted(tracking, "0" * 32) == []
+    assert db.read_bytes() == before
 
 
 def test_a_run_interrupted_before_content_keys_resumes_with_the_rows_it_logged(old_store):

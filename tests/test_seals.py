@@ -58,7 +58,7 @@ def copy_of(store: Path, tmp_path: Path) -> Path:
 
 def certify_cell(out: Path):
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    index = RunIndex.gather("mrcert", run_images)
+    index = RunIndex.load("mrcert", run_images)
     cell = index.cell(CERTIFY)
     return index, cell
 

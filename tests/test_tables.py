@@ -53,7 +53,7 @@ def store(tmp_path_factory):
 
 def source(out: Path, **kw) -> ExperimentCells:
     mlflow.set_tracking_uri(f"sqlite:///{out / 'mlflow.db'}")
-    return ExperimentCells(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=tuple(SETTINGS), **kw)
+    return ExperimentCells(RunIndex.load("mrcert"), "quick", experiment="demo", overrides=tuple(SETTINGS), **kw)
 
 
 def hand(out: Path, name: str, file: str, column: str, value=1) -> float:
@@ -118,7 +118,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=0"], f"{task}-0")
     overrides = tuple([*SETTINGS, "task.skip=1", "task.max=4"])
-    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    src = ExperimentCells(RunIndex.load("mrcert"), "quick", experiment="demo", overrides=overrides)
     early = tables.TABLE3.build(src)
     assert early.loc[("Tz", "Smoothed Vanilla SmallCNN"), ["Benign Acc", "5-pert Emp. Acc"]].isna().all()
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
@@ -126,7 +126,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     assert notes[("Tz / Smoothed Augmented SmallCNN", "Benign Acc")] == "no finished train run for its model"
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=1"], f"{task}-1")
-    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=overrides)
+    src = ExperimentCells(RunIndex.load("mrcert"), "quick", experiment="demo", overrides=overrides)
     df = tables.TABLE3.build(src)
     smooth, attack, certify = (
         pd.concat([read_log(out / "runs" / f"{task}-{i}" / f"{task}.tsv", ["idx"]) for i in (0, 1)]) for task in TASKS
@@ -397,7 +397,7 @@ def test_the_pages_time_per_stage_sums_every_run_behind_its_tables(store):
     }
     for overrides, folder in made.values():
         run(store, [*DEMO, *overrides, "model.variant=vanilla", "task.batch_size=64", *extra], folder)
-    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", experiment="demo", overrides=(*SETTINGS, *extra))
+    src = ExperimentCells(RunIndex.load("mrcert"), "quick", experiment="demo", overrides=(*SETTINGS, *extra))
     for table in tables.tables_for(src):  # as task=tables builds them before the page
         table.build(src)
     tables.TABLE3_SEQUENTIAL.build(src)
@@ -469,7 +469,7 @@ def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
         job = [f"experiment={experiment}", "task=train", f"data.protocol.separation_rule={rule}", *tiny]
         results[arch, rule] = run(tmp_path, [*job, "data.protocol.train.per_class=40", "seed=0"], f"lc-{arch}-{rule}")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", overrides=tuple(tiny))
+    src = ExperimentCells(RunIndex.load("mrcert"), "quick", overrides=tuple(tiny))
     df = learning_curve.runs(src).set_index(["model", "separation rule"])
     assert sorted(df.index) == sorted(jobs) and (df["training poses per class"] == 40).all()
     for key, result in results.items():
@@ -590,7 +590,7 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     run(tmp_path, [*bound, *budget, "model.trained_for={name:camera_motion}"], "bp")
     run(tmp_path, [*bound, *budget, "model.trained_for={name:pixelwise,sigma:0.25}"], "bp-noise")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
-    src = ExperimentCells(RunIndex.gather("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
+    src = ExperimentCells(RunIndex.load("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
     df = side_by_side.runs(src, deterministic=("method=bound_propagation", *budget))
     # The deterministic method's rows: the share verified with the right class, on the same images.
     for row, name in zip(df.iloc[3:].itertuples(), ("bp", "bp-noise"), strict=True):

@@ -171,37 +171,6 @@ def run_tags(cfg: DictConfig) -> dict[str, str]:
     return {k: str(v) for k, v in tags.items() if v is not None}
 
 
-def find_runs(tracking: DictConfig, key: str, finished: bool, task: str | None = None) -> list:
-    """Runs whose run key is ``key``, newest first: FINISHED ones, or (``finished=False``)
-    interrupted ones (RUNNING or KILLED; never FAILED, which ended on an error)."""
-    mlflow = configure(tracking)
-    exp = mlflow.MlflowClient().get_experiment_by_name(tracking.experiment)
-    if exp is None:
-        return []
-    status = "= 'FINISHED'" if finished else "!= 'FINISHED'"
-    where = [f"tags.`mrcert.key` = '{key}'", f"attributes.status {status}"]
-    if task is not None:
-        where.append(f"tags.`mrcert.task` = '{task}'")
-    runs = mlflow.search_runs(
-        experiment_ids=[exp.experiment_id],
-        filter_string=" and ".join(where),
-        order_by=["attributes.start_time DESC"],
-        output_format="list",
-    )
-    return runs if finished else [r for r in runs if r.info.status in ("RUNNING", "KILLED")]
-
-
-def all_runs(client, experiment_id: str, where: str = "") -> list:
-    """Every run of the experiment matching ``where``, page by page."""
-    runs, token = [], None
-    while True:
-        page = client.search_runs([experiment_id], where, max_results=1000, page_token=token)
-        runs += list(page)
-        token = page.token
-        if not token:
-            return runs
-
-
 def artifact(client, run_id: str, path: str) -> Path:
     """A run's artifact as a local file (downloaded when the store is remote), or a one-line error."""
     try:

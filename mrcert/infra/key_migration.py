@@ -1,4 +1,5 @@
-"""Stores written before models were named by content: their evaluations re-keyed on first use.
+"""Stores written before models were named by content: their evaluations re-keyed when a launch
+first opens the store (never by a read).
 
 An evaluation made before :mod:`mrcert.infra.stages` existed holds in its run and cell keys the
 ``runs:/<train run id>/...`` URI of its model, an id that only its own store knows. Migrating a
@@ -29,9 +30,10 @@ from omegaconf import DictConfig
 
 from mrcert.infra import seals
 from mrcert.infra.checkpoints import ARTIFACT_DIR
-from mrcert.infra.experiment import all_runs, artifact, read_run_config, run_file
+from mrcert.infra.experiment import artifact, read_run_config, run_file
 from mrcert.infra.identity import KEY_SCHEME, identify
 from mrcert.infra.log_keys import rekey
+from mrcert.infra.run_store import FINISHED, all_runs
 from mrcert.infra.tasks import TASKS
 
 log = logging.getLogger(__name__)
@@ -111,7 +113,7 @@ def seal_finished(client, experiment_id: str) -> int:
     """Seal every FINISHED task run of the experiment that finished without seals, as its
     files now are; the number of runs sealed."""
     sealed = 0
-    for run in all_runs(client, experiment_id, "attributes.status = 'FINISHED'"):
+    for run in all_runs(client, experiment_id, FINISHED):
         tags = run.data.tags
         task = TASKS.get(tags.get("mrcert.task", ""))
         if task is None or any(k.startswith(seals.PREFIX) for k in tags):

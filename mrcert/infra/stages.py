@@ -16,9 +16,9 @@ No key holds a store's run id, so a run copied into another store (``task=gather
 keys there, and a cell composed anywhere finds it. :func:`resolve` binds an evaluation to its
 model and computes the key: the launch (``mrcert task=...``) resolves through the live store
 (:class:`LiveRuns`), the tables through their index of finished runs
-(:class:`mrcert.reporting.cells.RunIndex`), both through the same :class:`TrainRuns` protocol.
-A store written before these keys existed is migrated on first use
-(:mod:`mrcert.infra.key_migration`).
+(:class:`mrcert.reporting.cells.RunIndex`), both through the same :class:`TrainRuns` protocol,
+and both ask :mod:`mrcert.infra.run_store` which run. A store written before these keys existed
+is migrated when a launch opens it (:mod:`mrcert.infra.key_migration`).
 """
 
 from __future__ import annotations
@@ -185,10 +185,9 @@ class LiveRuns:
         self.client = configure(tracking).MlflowClient()
 
     def newest_train_run(self, key: str) -> str | None:
-        from mrcert.infra.experiment import find_runs
+        from mrcert.infra.run_store import newest_train_run
 
-        found = find_runs(self.tracking, key, finished=True, task="train")
-        return found[0].info.run_id if found else None
+        return newest_train_run(self.tracking, key)
 
     def run_tags(self, run_id: str) -> dict[str, str] | None:
         try:

@@ -18,9 +18,9 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
-from mrcert.infra import identity
+from mrcert.infra import identity, run_store
 from mrcert.infra.config import plain
-from mrcert.infra.experiment import configure, ensure_experiment, find_runs, run_tags
+from mrcert.infra.experiment import configure, ensure_experiment, run_tags
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.locks import run_lock
 from mrcert.infra.resumption import adopt, close_stale, resumable, timed_segment
@@ -130,14 +130,6 @@ class Tracker:
                 mlflow.log_artifact(str(path), artifact_path=artifact_path)
 
 
-def finished_run(cfg: DictConfig, ident: RunIdentity):
-    """A FINISHED run with this run key, when ``skip_finished`` is on (reproductions), else None."""
-    if not (cfg.get("skip_finished") and cfg.tracking.enabled):
-        return None
-    runs = find_runs(cfg.tracking, ident.key, finished=True)
-    return runs[0] if runs else None
-
-
 @contextmanager
 def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[Tracker]:
     """An MLflow run around one task: params, tags (the run and cell keys, the model used) and
@@ -160,7 +152,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
     parent_id = info.get("run_id")
     mlflow = configure(cfg.tracking)
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
-    interrupted = find_runs(cfg.tracking, ident.key, finished=False)  # RUNNING or KILLED, newest first
+    interrupted = run_store.interrupted(cfg.tracking, ident.key)  # RUNNING or KILLED, newest first
     previous, lock = resumable(cfg, interrupted)
     close_stale(interrupted, mlflow.MlflowClient(), previous.info.run_id if previous is not None else None)
     if previous is not None:

@@ -30,12 +30,13 @@ from mrcert.errors import MrcertError
 from mrcert.infra import seals
 from mrcert.infra.config import CONF_DIR
 from mrcert.infra.experiment import artifact, read_run_config, run_file
+from mrcert.infra.run_store import CELL_COLUMN, KEY_COLUMN, finished_table, newest_train_run_in
 from mrcert.infra.schema import SCHEMAS
 from mrcert.infra.stages import resolve
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting import certify_log, metrics
 
-KEY, CELL = "tags.mrcert.key", "tags.mrcert.cell"
+KEY, CELL = KEY_COLUMN, CELL_COLUMN
 
 
 def compose_config(overrides: Iterable[str]) -> DictConfig:
@@ -139,28 +140,14 @@ class RunIndex:
         self._logs: dict[tuple[str, ...], pd.DataFrame | str] = {}
 
     @classmethod
-    def gather(cls, experiment: str, images: Images | None = None) -> RunIndex:
-        import mlflow
-
-        from mrcert.infra.key_migration import migrate_once
-
-        client = mlflow.MlflowClient()
-        migrate_once(client, experiment)
-        exp = client.get_experiment_by_name(experiment)
-        if exp is None:
-            return cls(pd.DataFrame(columns=["run_id", "start_time", KEY, CELL]))
-        df = mlflow.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'")
-        for col in (KEY, CELL):
-            if col not in df:
-                df[col] = None
-        df = df[df[CELL].notna()] if len(df) else df
-        return cls(df.sort_values("start_time", ascending=False).reset_index(drop=True), images)
+    def load(cls, experiment: str, images: Images | None = None) -> RunIndex:
+        """The index of ``experiment``'s FINISHED runs in the current store (read only)."""
+        return cls(finished_table(experiment), images)
 
     # --- what the resolver reads (mrcert.infra.stages.TrainRuns) ------------------------------
     def newest_train_run(self, key: str) -> str | None:
         """The newest FINISHED train run with run key ``key``."""
-        hits = self.df[(self.df[KEY] == key) & (self.df.get("tags.mrcert.task") == "train")]
-        return None if hits.empty else str(hits.iloc[0]["run_id"])
+        return newest_train_run_in(self.df, key)
 
     def run_tags(self, run_id: str) -> dict[str, str] | None:
         fields = self._fields(run_id, "tags.")

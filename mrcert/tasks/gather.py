@@ -31,8 +31,9 @@ from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
 from mrcert.infra import seals
-from mrcert.infra.experiment import all_runs, ensure_experiment
+from mrcert.infra.experiment import ensure_experiment
 from mrcert.infra.key_migration import GATHERED, migrate, seal_finished
+from mrcert.infra.run_store import FINISHED, all_runs
 from mrcert.infra.tracking import RunContext
 
 BATCH = 100  # MLflow's log_batch takes at most 100 params or tags and 1000 metrics per call
@@ -55,7 +56,7 @@ def other_store(value: str) -> tuple[str, Path | None]:
 def _finished_runs(client, experiment_id: str) -> list:
     """Every FINISHED run: sweep parents first (their children link to their copies), then the
     rest, each group by start time."""
-    runs = all_runs(client, experiment_id, "attributes.status = 'FINISHED'")
+    runs = all_runs(client, experiment_id, FINISHED)
 
     def order(r) -> tuple[int, int]:
         return (0 if r.data.tags.get("mrcert.multirun") == "parent" else 1), r.info.start_time

@@ -48,7 +48,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     named = named_data()
     outputs = Path(cfg.paths.outputs).resolve()  # the cells' data is cached where this run writes
     src = ExperimentCells(
-        RunIndex.gather(cfg.tracking.experiment, run_images),
+        RunIndex.load(cfg.tracking.experiment, run_images),
         profile=str(t.profile),
         experiment=t.experiment,
         overrides=(*t.overrides, *((f"data={named}",) if named else ()), f"paths.outputs={outputs}"),

@@ -1,0 +1,101 @@
+"""Which run: the one module that asks an MLflow store which of its runs serves a job.
+
+* :func:`finished` -- the FINISHED runs of a run key, newest first (a job's result, which
+  ``skip_finished`` reuses: :func:`reusable_run`; a model's train run: :func:`newest_train_run`,
+  or :func:`newest_train_run_in` the tables' index);
+* :func:`interrupted` -- a run key's RUNNING or KILLED runs, newest first (what a resumed job
+  continues, :mod:`mrcert.infra.resumption`);
+* :func:`finished_table` -- every FINISHED run of an experiment as one table (what the tables
+  index: :class:`mrcert.reporting.cells.RunIndex`; what ``task=gather`` copies: :func:`all_runs`).
+
+Reading never writes: migrating a store keyed by an older scheme happens once when a launch
+opens it (:func:`mrcert.infra.key_migration.migrate_once`, from the entry point), never as a side
+effect of a look-up.
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+from omegaconf import DictConfig
+
+from mrcert.infra.experiment import configure
+from mrcert.infra.identity import RunIdentity
+
+KEY_TAG, CELL_TAG = "mrcert.key", "mrcert.cell"
+FINISHED = "attributes.status = 'FINISHED'"
+KEY_COLUMN, CELL_COLUMN = f"tags.{KEY_TAG}", f"tags.{CELL_TAG}"
+
+
+def _key_query(tracking: DictConfig, key: str, status: str, task: str | None) -> list:
+    mlflow = configure(tracking)
+    exp = mlflow.MlflowClient().get_experiment_by_name(tracking.experiment)
+    if exp is None:
+        return []
+    where = [f"tags.`{KEY_TAG}` = '{key}'", f"attributes.status {status}"]
+    if task is not None:
+        where.append(f"tags.`mrcert.task` = '{task}'")
+    return mlflow.search_runs(
+        experiment_ids=[exp.experiment_id],
+        filter_string=" and ".join(where),
+        order_by=["attributes.start_time DESC"],
+        output_format="list",
+    )
+
+
+def finished(tracking: DictConfig, key: str, task: str | None = None) -> list:
+    """The FINISHED runs whose run key is ``key`` (of task ``task``, when given), newest first."""
+    return _key_query(tracking, key, "= 'FINISHED'", task)
+
+
+def interrupted(tracking: DictConfig, key: str) -> list:
+    """The runs of run key ``key`` that were interrupted (RUNNING or KILLED; never FAILED, which
+    ended on an error), newest first."""
+    runs = _key_query(tracking, key, "!= 'FINISHED'", None)
+    return [r for r in runs if r.info.status in ("RUNNING", "KILLED")]
+
+
+def reusable_run(cfg: DictConfig, ident: RunIdentity):
+    """A FINISHED run with this run key, when ``skip_finished`` is on (reproductions), else None."""
+    if not (cfg.get("skip_finished") and cfg.tracking.enabled):
+        return None
+    runs = finished(cfg.tracking, ident.key)
+    return runs[0] if runs else None
+
+
+def newest_train_run(tracking: DictConfig, key: str) -> str | None:
+    """The id of the newest FINISHED train run with run key ``key``, or None."""
+    runs = finished(tracking, key, task="train")
+    return runs[0].info.run_id if runs else None
+
+
+def newest_train_run_in(table: pd.DataFrame, key: str) -> str | None:
+    """:func:`newest_train_run` among the rows of a :func:`finished_table`."""
+    hits = table[(table[KEY_COLUMN] == key) & (table.get("tags.mrcert.task") == "train")]
+    return None if hits.empty else str(hits.iloc[0]["run_id"])
+
+
+def all_runs(client, experiment_id: str, where: str = "") -> list:
+    """Every run of the experiment matching ``where``, page by page."""
+    runs, token = [], None
+    while True:
+        page = client.search_runs([experiment_id], where, max_results=1000, page_token=token)
+        runs += list(page)
+        token = page.token
+        if not token:
+            return runs
+
+
+def finished_table(experiment: str) -> pd.DataFrame:
+    """Every FINISHED run of ``experiment`` that has a cell key, newest first, as MLflow's runs
+    table (``run_id``, ``start_time``, ``tags.*``, ``metrics.*``, ...); empty when there is none."""
+    import mlflow
+
+    exp = mlflow.MlflowClient().get_experiment_by_name(experiment)
+    if exp is None:
+        return pd.DataFrame(columns=["run_id", "start_time", KEY_COLUMN, CELL_COLUMN])
+    df = mlflow.search_runs([exp.experiment_id], filter_string=FINISHED)
+    for col in (KEY_COLUMN, CELL_COLUMN):
+        if col not in df:
+            df[col] = None
+    df = df[df[CELL_COLUMN].notna()] if len(df) else df
+    return df.sort_values("start_time", ascending=False).reset_index(drop=True)
