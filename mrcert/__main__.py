@@ -16,7 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from mrcert.errors import ConfigError, MrcertError
+from mrcert.errors import MrcertError
 from mrcert.infra import config as mrcert_config
 from mrcert.infra.checkpoints import check_classes, local_checkpoint, read_checkpoint
 from mrcert.infra.identity import RunIdentity
@@ -29,7 +29,6 @@ from mrcert.infra.store import is_locked, locked
 from mrcert.infra.sweeps import fail_parent
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext, task_run
-from mrcert.tasks import run_function
 from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")
@@ -57,7 +56,7 @@ OmegaConf.register_new_resolver("mrcert_groups_help", groups_help, replace=True)
 def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
     """``cfg`` bound to its inputs (the one checkpoint an evaluation uses) and its run identity.
     Every file input is checked here, before any data is prepared or any run is created."""
-    task = TASKS[cfg.task.name]
+    task = TASKS.of(cfg)
     check_inputs(cfg, task.identity)
     runs = None
     if cfg.tracking.enabled:
@@ -80,18 +79,15 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     """
     try:
         mrcert_config.validate(cfg)
-        if cfg.task.name not in TASKS:
-            raise ConfigError("task.name", cfg.task.name, f"one of {', '.join(TASKS)}")
+        task = TASKS.of(cfg)
         cfg, ident = bind(cfg)
-        task = TASKS[cfg.task.name]
         with key_lock(cfg, ident):  # lookup and creation of this key's run: one job at a time
             done = reusable_run(cfg, ident) if task.reusable else None
             if done is not None:
                 log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
                 return dict(done.data.metrics)
-            func = run_function(cfg.task.name)
             with task_run(cfg, output_dir, ident) as tracker:
-                result = func(cfg, RunContext(tracker.output_dir, tracker))
+                result = task.run(cfg, RunContext(tracker.output_dir, tracker))
     except BaseException:
         fail_parent(cfg)
         raise

@@ -1,8 +1,10 @@
 """The entry point end to end: task runs land in MLflow with params, tags and artifacts."""
 
 import json
+import os
 import shlex
 import subprocess
+import sys
 from pathlib import Path
 
 import mlflow
@@ -140,7 +142,7 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
 def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs(tmp_path):
     """Every step of make demo, its tables included, runs as a sweep: a parent and its jobs. The
     demo's own recipe, on a tiny scene, and the runs page's view names metrics the runs log."""
-    from mrcert.infra.experiment import EXPERIMENT_TAGS, RUNS_VIEW_METRICS, ui_link_for
+    from mrcert.infra.experiment import experiment_tags, runs_view_metrics, ui_link_for
 
     recipe = make_recipe("demo")
     assert [c for c in recipe if "task=tables" in c], recipe
@@ -156,10 +158,10 @@ def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs
     # Task runs say whether they are a sweep's job (searchable: tags.`mrcert.multirun` = 'job').
     assert {r.data.tags["mrcert.multirun"] for r in all_runs if r.info.run_id not in parents} == {"job"}
     logged = set().union(*(r.data.metrics for r in all_runs))
-    assert set(RUNS_VIEW_METRICS) <= logged, set(RUNS_VIEW_METRICS) - logged
+    assert set(runs_view_metrics()) <= logged, set(runs_view_metrics()) - logged
     # The view groups by a tag every task run carries and no parent does: the page lists every
     # job in its task's group and gathers the parents in MLflow's collapsed "Additional runs".
-    (group,) = json.loads(EXPERIMENT_TAGS["mlflow.sharedViewState.mrcert"])["groupBy"]["groupByKeys"]
+    (group,) = json.loads(experiment_tags()["mlflow.sharedViewState.mrcert"])["groupBy"]["groupByKeys"]
     assert group["mode"] == "tag"
     assert {r.info.run_id for r in all_runs if group["groupByData"] not in r.data.tags} == parents
     assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith(
@@ -229,7 +231,7 @@ def test_a_store_from_before_the_grouped_view_gets_its_parents_out_of_the_task_g
     by; the first run against such a store moves it to ``mrcert.sweep_tasks`` and sets the view."""
     from omegaconf import OmegaConf
 
-    from mrcert.infra.experiment import EXPERIMENT_TAGS, ensure_experiment
+    from mrcert.infra.experiment import ensure_experiment, experiment_tags
 
     client = store(tmp_path)
     old_view = {"mlflow.sharedViewState.mrcert": json.dumps({"selectedColumns": []})}
@@ -245,5 +247,56 @@ def test_a_store_from_before_the_grouped_view_gets_its_parents_out_of_the_task_g
     assert client.get_run(job.info.run_id).data.tags["mrcert.task"] == "certify"
     assert (
         client.get_experiment(exp).tags["mlflow.sharedViewState.mrcert"]
-        == EXPERIMENT_TAGS["mlflow.sharedViewState.mrcert"]
+        == experiment_tags()["mlflow.sharedViewState.mrcert"]
     )
+
+
+TOY_TASK = """
+import pandas as pd
+
+from mrcert.infra.identity import Identity
+from mrcert.infra.tasks import Task
+
+
+class Toy(Task):
+    summary = "write task.times rows and add them up"
+    identity = Identity(defines=("task",))
+    log = "toy.tsv"
+    columns = ("idx", "value")
+    headline = ("total",)
+
+    def title(self, cfg):
+        return f"toy x{cfg.task.times}"
+
+    def summarize(self, log, cfg):
+        return {"total": float(log["value"].sum())}
+
+    def run(self, cfg, ctx):
+        rows = pd.DataFrame({"idx": range(cfg.task.times), "value": range(1, cfg.task.times + 1)})
+        rows.to_csv(ctx.output_dir / self.log, sep="\\t", index=False)
+        metrics = self.summarize(rows, cfg)
+        ctx.tracker.log_metrics(metrics)
+        return metrics
+"""
+
+
+def test_a_new_task_is_one_python_file_and_one_yaml(tmp_path):
+    """A task defined outside the package -- its class in one module, its config in one YAML on
+    Hydra's search path -- runs through the one entry point as a tracked run, named by its class,
+    keyed by its config and reused by ``skip_finished``."""
+    package, conf = tmp_path / "package", tmp_path / "conf" / "task"
+    package.mkdir()
+    conf.mkdir(parents=True)
+    (package / "toytask.py").write_text(TOY_TASK)
+    (conf / "toy.yaml").write_text("_target_: toytask.Toy\nname: toy\ntimes: 3\n")
+    env = os.environ | {"MRCERT_OUTPUTS": str(tmp_path / "out"), "PYTHONPATH": str(package)}
+    args = [sys.executable, "-m", "mrcert", "task=toy", f"hydra.searchpath=[file://{tmp_path / 'conf'}]"]
+    for _ in range(2):
+        proc = subprocess.run(
+            [*args, "skip_finished=true"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'out' / 'mlflow.db'}")
+    (run,) = mlflow.search_runs(search_all_experiments=True, output_format="list")
+    assert run.info.status == "FINISHED" and run.info.run_name == "toy x3" and run.data.metrics["total"] == 6.0
+    assert run.data.tags["mrcert.task"] == "toy" and "mrcert.sealed.toy.tsv" in run.data.tags

@@ -62,9 +62,19 @@ def test_every_key_of_every_shipped_config_is_classified(task, data):
     assert unclassified == []
 
 
-RUNS_ANYWHERE = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent", "per_task")
-"""Where outputs go, how runs are tracked and scheduled, a bound only validation reads, and an
-experiment's settings of single tasks (what they set is in the task's own keys)."""
+RUNS_ANYWHERE = (
+    "paths",
+    "tracking",
+    "device",
+    "skip_finished",
+    "data.cache_dir",
+    "data.extent",
+    "per_task",
+    "task._target_",
+)
+"""Where outputs go, how runs are tracked and scheduled, a bound only validation reads, an
+experiment's settings of single tasks (what they set is in the task's own keys), and the class
+that runs the task (its name, in the key, says which)."""
 HOW_IT_EVALUATES = ("task.batch_size", "task.backend", "task.resume", "task.crop_sigmas")
 """How an evaluation computes, never what: batches, the projection's back end, resuming, the exact crop."""
 

@@ -120,10 +120,13 @@ def test_no_layer_names_a_layer_above_it_in_a_string():
     assert wrong == []
 
 
-def test_every_task_runs_and_every_log_is_summarised_by_its_name():
-    from mrcert.infra.tasks import TASKS
-    from mrcert.reporting.metrics import SUMMARIES
-    from mrcert.tasks import run_function
+def test_every_task_is_a_class_that_runs_and_summarises_its_log():
+    """Each ``conf/task/<name>.yaml`` names its :class:`Task` subclass (``_target_``); the class
+    runs the task, and summarises its per-image log when it writes one."""
+    from mrcert.infra.tasks import TASKS, Task
 
-    assert all(callable(run_function(name)) for name in TASKS)
-    assert set(SUMMARIES) == {name for name, task in TASKS.items() if task.log}
+    names = sorted(p.stem for p in (ROOT.parent / "conf" / "task").glob("*.yaml"))
+    assert sorted(TASKS) == names and len(names) == 11
+    for name, task in TASKS.items():
+        assert isinstance(task, Task) and type(task).run is not Task.run, name
+        assert (type(task).summarize is not Task.summarize) == (task.log is not None), name

@@ -21,7 +21,6 @@ from mrcert.infra.identity import identify
 from mrcert.infra.stages import train_key
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting.certify_log import read_log
-from mrcert.reporting.metrics import summarize
 from mrcert.tasks.train import accuracy, as_tensors, evaluate
 from tests.conftest import PAPER_K, TINY, TINY_CLASSES, compose_cfg
 
@@ -318,10 +317,10 @@ def test_a_pixelwise_run_reports_certified_accuracy_for_its_interval():
     assert float(cfg.motion.radius) > 0.001
     log = pd.DataFrame({"idx": [0, 1, 2, 3], "predict": [0, 1, -1, 2], "correct": [1, 1, 0, 0],
                         "radius": [0.001, 0.0, 0.0, 0.001], "n": 4000, "seconds": 1.0})  # fmt: skip
-    assert summarize("certify", log, cfg)["certified_accuracy"] == 0.25
+    assert TASKS["certify"].summarize(log, cfg)["certified_accuracy"] == 0.25
     motion = compose_cfg(["task=certify"])
     log["radius"] = [float(motion.motion.radius)] * 2 + [0.0, 0.0]
-    assert summarize("certify", log, motion)["certified_accuracy"] == 0.5  # motion smoothing: at motion.radius
+    assert TASKS["certify"].summarize(log, motion)["certified_accuracy"] == 0.5  # motion smoothing: at motion.radius
 
 
 class ScriptedFrames:

@@ -4,6 +4,7 @@ runs, the tags runs are filed under, and the look-up of runs by run key."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from pathlib import Path
@@ -50,7 +51,7 @@ def ensure_experiment(tracking: DictConfig) -> str:
     except Exception as exc:  # unreachable server, corrupt store
         raise MrcertError(f"cannot reach the MLflow store at {tracking.uri}: {exc}") from None
     if exp is not None:
-        stale = {k: v for k, v in EXPERIMENT_TAGS.items() if exp.tags.get(k) != v}
+        stale = {k: v for k, v in experiment_tags().items() if exp.tags.get(k) != v}
         if stale:  # a store an older mrcert wrote: its sweep parents carry the task tag the view groups by
             _untag_parents(mlflow, exp.experiment_id)
         for k, v in stale.items():
@@ -67,9 +68,9 @@ def ensure_experiment(tracking: DictConfig) -> str:
             exp = client.get_experiment_by_name(tracking.experiment)
             if exp is not None:
                 return exp.experiment_id
-            return client.create_experiment(tracking.experiment, location, EXPERIMENT_TAGS)
+            return client.create_experiment(tracking.experiment, location, experiment_tags())
     try:
-        return client.create_experiment(tracking.experiment, artifact_location=location, tags=EXPERIMENT_TAGS)
+        return client.create_experiment(tracking.experiment, artifact_location=location, tags=experiment_tags())
     except Exception:  # another job created it in between (a server serialises creations)
         exp = client.get_experiment_by_name(tracking.experiment)
         if exp is None:
@@ -77,46 +78,52 @@ def ensure_experiment(tracking: DictConfig) -> str:
         return exp.experiment_id
 
 
-RUNS_VIEW_METRICS = tuple(
-    dict.fromkeys(m for task in sorted(TASKS.values(), key=lambda t: t.log is None) for m in task.headline)
-)
-"""The tasks' headline metrics, in the order the runs page shows them: those of the tasks with a
-per-image log (certify first) before a train run's."""
-
 RUNS_VIEW = "mrcert"
 """Name of the runs page's view that :func:`ui_link` opens (MLflow's shared view state)."""
 
 _NAME_COLUMN = "attributes.`Run Name`"
 
-_VIEW_COLUMNS = [f"metrics.`{name}`" for name in RUNS_VIEW_METRICS]
-
 RUNS_VIEW_GROUP = "mrcert.task"
 """The tag the runs page groups by: every task run carries it, a sweep's parent does not (its
 tasks are ``mrcert.sweep_tasks``), so parents gather in MLflow's collapsed "Additional runs"."""
 
-EXPERIMENT_TAGS = {
-    # MLflow's UI then opens the experiment on its runs, not on GenAI traces.
-    "mlflow.experimentKind": "custom_model_development",
-    # A view of the runs page (MLflow's "share view" mechanism: an experiment tag named by the
-    # view's key, opened with ``?viewStateShareKey=<key>``): runs grouped by task, each group
-    # open and its runs listed (a sweep's jobs are otherwise hidden under their collapsed
-    # parent), certify runs first, the run name wide enough for task, axis, variant and model,
-    # then the headline metrics, with no horizontal scrolling.
-    f"mlflow.sharedViewState.{RUNS_VIEW}": json.dumps(
-        {
-            "selectedColumns": _VIEW_COLUMNS,
-            "columnOrder": [_NAME_COLUMN, *_VIEW_COLUMNS],
-            "columnWidths": {_NAME_COLUMN: 320} | {f"metrics.`{m}`": 7 * len(m) + 24 for m in RUNS_VIEW_METRICS},
-            "groupBy": {
-                "aggregateFunction": "average",
-                "groupByKeys": [{"mode": "tag", "groupByData": RUNS_VIEW_GROUP}],
-            },
-            "orderByKey": _VIEW_COLUMNS[0],
-            "orderByAsc": False,
-        }
-    ),
-}
-"""Tags every mrcert experiment carries (set on creation, restored when missing or changed)."""
+
+@functools.cache
+def runs_view_metrics() -> tuple[str, ...]:
+    """The tasks' headline metrics, in the order the runs page shows them: those of the tasks with a
+    per-image log (certify first) before a train run's."""
+    return tuple(
+        dict.fromkeys(m for task in sorted(TASKS.values(), key=lambda t: t.log is None) for m in task.headline)
+    )
+
+
+@functools.cache
+def experiment_tags() -> dict[str, str]:
+    """Tags every mrcert experiment carries (set on creation, restored when missing or changed)."""
+    metrics = runs_view_metrics()
+    columns = [f"metrics.`{name}`" for name in metrics]
+    return {
+        # MLflow's UI then opens the experiment on its runs, not on GenAI traces.
+        "mlflow.experimentKind": "custom_model_development",
+        # A view of the runs page (MLflow's "share view" mechanism: an experiment tag named by the
+        # view's key, opened with ``?viewStateShareKey=<key>``): runs grouped by task, each group
+        # open and its runs listed (a sweep's jobs are otherwise hidden under their collapsed
+        # parent), certify runs first, the run name wide enough for task, axis, variant and model,
+        # then the headline metrics, with no horizontal scrolling.
+        f"mlflow.sharedViewState.{RUNS_VIEW}": json.dumps(
+            {
+                "selectedColumns": columns,
+                "columnOrder": [_NAME_COLUMN, *columns],
+                "columnWidths": {_NAME_COLUMN: 320} | {f"metrics.`{m}`": 7 * len(m) + 24 for m in metrics},
+                "groupBy": {
+                    "aggregateFunction": "average",
+                    "groupByKeys": [{"mode": "tag", "groupByData": RUNS_VIEW_GROUP}],
+                },
+                "orderByKey": columns[0],
+                "orderByAsc": False,
+            }
+        ),
+    }
 
 
 def _untag_parents(mlflow, experiment_id: str) -> None:

@@ -37,10 +37,20 @@ from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.core.methods import unkeyed
 from mrcert.infra.config import plain
 
-COMMON_IGNORES = ("paths", "tracking", "device", "skip_finished", "data.cache_dir", "data.extent", "per_task")
+COMMON_IGNORES = (
+    "paths",
+    "tracking",
+    "device",
+    "skip_finished",
+    "data.cache_dir",
+    "data.extent",
+    "per_task",
+    "task._target_",
+)
 """Where outputs go and how runs are tracked or scheduled, bounds that only validation reads
-(``data.extent``), and an experiment's settings of single tasks (``per_task``: the task's own
-keys, which are part of its result, hold them): never part of a result."""
+(``data.extent``), an experiment's settings of single tasks (``per_task``: the task's own keys,
+which are part of its result, hold them) and the class that runs a task (``task._target_``: its
+name says which task): never part of a result."""
 
 AS_BUILT = tuple(
     (key, value, key)

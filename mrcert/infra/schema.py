@@ -22,6 +22,7 @@ from mrcert.core.methods import METHODS
 # --- task --------------------------------------------------------------------------------
 @dataclass
 class EvaluationTask:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     n: int = MISSING
     alpha: float = MISSING
@@ -55,6 +56,7 @@ class Attack(EvaluationTask):
 
 @dataclass
 class Train:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     eval_batch_size: int = MISSING
     resume: bool = MISSING
@@ -62,6 +64,7 @@ class Train:
 
 @dataclass
 class Render:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     axes: list[str] | None = None
     num: int = MISSING
@@ -74,6 +77,7 @@ class Render:
 
 @dataclass
 class Tables:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     profile: str = MISSING
     experiment: str | None = None
@@ -91,6 +95,7 @@ class Tables:
 
 @dataclass
 class Import:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     path: str = MISSING
     dataset: str = MISSING
@@ -106,6 +111,7 @@ class Import:
 
 @dataclass
 class Gather:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     store: str = MISSING
 
@@ -118,6 +124,7 @@ class Export(EvaluationTask):
 
 @dataclass
 class Verify:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     onnx: str | None = None
     vnnlib: str | None = None
@@ -132,6 +139,7 @@ class Verify:
 
 @dataclass
 class Viewpoints:
+    _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     pitches: list[float] = MISSING
     rolls: list[float] = MISSING

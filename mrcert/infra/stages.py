@@ -168,7 +168,7 @@ def bind_model(cfg: DictConfig, runs: TrainRuns | None) -> tuple[DictConfig, Mod
 
 def resolve(cfg: DictConfig, runs: TrainRuns | None) -> tuple[DictConfig, RunIdentity]:
     """``cfg`` bound to its model (for a task that evaluates one) and its run identity."""
-    task = TASKS[cfg.task.name]
+    task = TASKS.of(cfg)
     model = None
     if task.identity.needs_model:
         cfg, model = bind_model(cfg, runs)

@@ -1,44 +1,130 @@
-"""The one table of tasks: name -> what a task is, apart from its computation -- what defines
-its result (its :class:`~mrcert.infra.identity.Identity`), the per-image log it writes and that
-log's columns, the headline metrics the MLflow runs page shows, and the run's name.
+"""What a task is, apart from its computation, and where each task is found.
 
-The computations live above this layer and are found by the task's name: its ``run(cfg, ctx)``
-in :mod:`mrcert.tasks` (:func:`mrcert.tasks.run_function`), and the headline metrics of its
-per-image log in :mod:`mrcert.reporting.metrics` (:func:`mrcert.reporting.metrics.summarize`).
+A task is a subclass of :class:`Task` in its own module under :mod:`mrcert.tasks`, named by
+``_target_`` in its YAML (``conf/task/<name>.yaml``): what defines its result (its
+:class:`~mrcert.infra.identity.Identity`), the per-image log it writes and that log's columns,
+its headline metrics (:meth:`Task.summarize`), the run's name (:meth:`Task.title`) and its
+computation (:meth:`Task.run`). Adding a task is that module and that YAML.
+
+:data:`TASKS` finds a task by name: from a composed config (:meth:`Registry.of`, which is how
+the entry point meets it), else from its YAML. A task's module is imported only when the task
+is asked for, never by this module.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from collections.abc import Iterator, Mapping
+from typing import Any, ClassVar
 
 from omegaconf import DictConfig, OmegaConf
 
+from mrcert.errors import ConfigError, MrcertError
+from mrcert.infra.config import CONF_DIR
 from mrcert.infra.identity import PARTITION, Identity
 
 
-@dataclass(frozen=True)
 class Task:
-    summary: str
-    identity: Identity
+    """One task: subclass it, set the class attributes, implement :meth:`run`."""
+
+    summary: ClassVar[str] = ""
+    """One line for ``mrcert --help``."""
+    identity: ClassVar[Identity] = Identity(defines=("task",))
     """Which config keys define the task's result (see :mod:`mrcert.infra.identity`)."""
-    reusable: bool = True
+    reusable: ClassVar[bool] = True
     """Whether a FINISHED run of the same run key may stand in for a new one (``skip_finished``)."""
-    log: str | None = None
+    log: ClassVar[str | None] = None
     """The per-image log the task writes (in its run folder and artifacts), for tables and shards."""
-    columns: tuple[str, ...] = ()
+    columns: ClassVar[tuple[str, ...]] = ()
     """The log's columns, in order."""
-    headline: tuple[str, ...] = ()
+    headline: ClassVar[tuple[str, ...]] = ()
     """Of the headline metrics of its log, the ones the MLflow runs page shows as columns."""
-    title: Callable[[DictConfig], str] = lambda cfg: f"{cfg.task.name} {cfg.data.name}"
-    """The run's name: what it is, in words, what tells runs apart first (the runs page cuts long names)."""
+
+    def title(self, cfg: DictConfig) -> str:
+        """The run's name: what it is, in words, what tells runs apart first (the runs page cuts long names)."""
+        return f"{cfg.task.name} {cfg.data.name}"
+
+    def summarize(self, log: Any, cfg: DictConfig) -> dict[str, float]:
+        """The headline metrics of the task's per-image ``log`` (a DataFrame, whole or merged from
+        shards): what the run logs when it ends and what a table cell shows."""
+        raise NotImplementedError(f"task {cfg.task.name} writes no per-image log")
+
+    def run(self, cfg: DictConfig, ctx: Any) -> dict[str, Any]:
+        """Compute the task's result into ``ctx`` (a :class:`mrcert.infra.tracking.RunContext`);
+        its headline metrics."""
+        raise NotImplementedError
 
 
-def _model_title(cfg: DictConfig) -> str:
+class Registry(Mapping[str, Task]):
+    """The tasks by name: each resolved once from its ``_target_``."""
+
+    def __init__(self) -> None:
+        self._tasks: dict[str, Task] = {}
+
+    def of(self, cfg: DictConfig) -> Task:
+        """The task ``cfg.task`` names, resolved from its own ``_target_`` (a task defined outside
+        this package's ``conf/`` included)."""
+        name = str(cfg.task.name)
+        if name not in self._tasks:
+            target = OmegaConf.select(cfg, "task._target_", default=None) or _target(name)
+            if target is None:
+                raise ConfigError(
+                    "task.name", name, f"one of {', '.join(self)} (or a task whose config names its _target_)"
+                )
+            self._tasks[name] = _load(name, target)
+        return self._tasks[name]
+
+    def __getitem__(self, name: str) -> Task:
+        if name not in self._tasks:
+            target = _target(name)
+            if target is None:
+                raise KeyError(name)
+            self._tasks[name] = _load(name, target)
+        return self._tasks[name]
+
+    def __contains__(self, name: object) -> bool:
+        return isinstance(name, str) and (name in self._tasks or _target(name) is not None)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(sorted(set(self._tasks) | set(_names())))
+
+    def __len__(self) -> int:
+        return len(set(self._tasks) | set(_names()))
+
+
+def _names() -> list[str]:
+    return [p.stem for p in sorted((CONF_DIR / "task").glob("*.yaml")) if _target(p.stem)]
+
+
+def _target(name: str) -> str | None:
+    path = CONF_DIR / "task" / f"{name}.yaml"
+    if not path.is_file():
+        return None
+    target = OmegaConf.load(path).get("_target_")
+    return None if target is None else str(target)
+
+
+def _load(name: str, target: str) -> Task:
+    import importlib
+
+    module, _, attr = target.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise MrcertError(f"task {name!r} names _target_={target!r}, which cannot be imported: {exc}") from None
+    if not (isinstance(cls, type) and issubclass(cls, Task)):
+        raise MrcertError(f"task {name!r} names _target_={target!r}, which is not a mrcert Task")
+    return cls()
+
+
+TASKS = Registry()
+"""Every task, by name (``conf/task/<name>.yaml``'s ``_target_``)."""
+
+
+def model_title(cfg: DictConfig) -> str:
     """``certify tz augmented small_cnn`` (plus a method other than motion smoothing, the attack's
     k, the shard): a train, certify, smooth or attack run."""
     task = str(cfg.task.name)
-    ignored = TASKS[task].identity.ignored(cfg)
+    ignored = TASKS.of(cfg).identity.ignored(cfg)
     words = [task, str(cfg.motion.axis), str(cfg.method.name), str(cfg.model.variant), str(cfg.model.arch)]
     if "method" in ignored:  # a method that adds nothing to the key (camera motion smoothing) goes unnamed
         words.remove(str(cfg.method.name))
@@ -51,10 +137,7 @@ def _model_title(cfg: DictConfig) -> str:
     return " ".join(words)
 
 
-CERTIFY_COLUMNS = ("idx", "label", "predict", "radius", "correct", "time")
-"""The columns of Cohen et al.'s certify logs, which an imported log needs and ours begins with."""
-
-
+# --- identities that several tasks share ----------------------------------------------------
 DATA_FILES = ("data.path", "data.poses")
 EVALUATION = Identity(
     defines=("task", "data", "model", "motion", "method", "seed", "profile"),
@@ -74,164 +157,10 @@ EVALUATION = Identity(
     needs_model=True,
     method="result",
 )
+"""An evaluation of a trained model (certify, smooth, attack, export)."""
 
 FIXED_PREDICT = (("task.sequential", False, "task.sequential"), ("task.sequential", False, "task.look"))
 """Fixed-n PREDICT (smooth, attack) keeps the keys it had before sequential PREDICT existed."""
 
 HELPER_IGNORES = ("data", "model", "motion", "method", "seed", "profile", "train", "attack")
 """What a helper task (import, gather) never depends on: the composed data, model and recipe."""
-
-TASKS: dict[str, Task] = {
-    "render": Task(
-        "render a scene under motions, or a dataset's images into the cache",
-        Identity(
-            defines=("task", "data", "motion", "method", "seed", "profile"),
-            ignores=("model", "train", "attack", "task.backend"),
-            files=DATA_FILES,
-            method="result",
-        ),
-    ),
-    "train": Task(
-        "train a vanilla or motion-augmented base classifier",
-        Identity(
-            defines=("task.name", "data", "model", "train", "motion", "method", "seed", "profile"),
-            # A method's certify.* never trains; model.trained_for is refused here (an evaluation's).
-            ignores=("task", "model.checkpoint", "model.trained_for", "attack", "method.certify"),
-            ignore_when=(  # a vanilla model never sees a motion or a method
-                ("model.variant", "vanilla", "motion"),
-                ("model.variant", "vanilla", "method"),
-            ),
-            files=DATA_FILES,
-            method="model",
-        ),
-        headline=("test_acc",),
-        title=_model_title,
-    ),
-    "certify": Task(
-        "CERTIFY each test image of the smoothed classifier (certify.tsv)",
-        replace(EVALUATION, ignore_when=(("task.sequential", False, "task.look"),)),  # fixed n: no looks
-        log="certify.tsv",
-        columns=(
-            *CERTIFY_COLUMNS,
-            "count_a",
-            "n0",
-            "n",
-            "p_a_lower",
-            "sigma",
-            "axis",
-            "seconds",
-            "projected",
-            "margin",
-            "radius_unit",
-            "sigma_unit",
-        ),
-        headline=("certified_accuracy", "clean_accuracy", "mean_samples"),
-        title=_model_title,
-    ),
-    "smooth": Task(
-        "smoothed benign accuracy: PREDICT at each test pose",
-        replace(EVALUATION, ignore_when=FIXED_PREDICT),
-        log="smooth.tsv",
-        columns=("idx", "label", "predict", "correct", "n", "axis", "seconds"),
-        headline=("smoothed_benign_accuracy",),
-        title=_model_title,
-    ),
-    "attack": Task(
-        "K-perturbed empirical robust accuracy, base and smoothed",
-        replace(
-            EVALUATION,
-            defines=(*EVALUATION.defines, "attack"),
-            ignores=tuple(i for i in EVALUATION.ignores if i != "attack"),
-            ignore_when=FIXED_PREDICT,
-        ),
-        log="attack.tsv",
-        columns=(
-            "idx",
-            "label",
-            "axis",
-            "k",
-            "base_benign",
-            "base_robust",
-            "base_worst",
-            "smoothed_robust",
-            "smoothed_worst",
-            "smoothed_failure",
-            "motion_unit",
-            "seconds",
-        ),
-        headline=("smoothed_robust_accuracy", "base_benign_accuracy"),
-        title=_model_title,
-    ),
-    "verify": Task(
-        "verify VNN-LIB properties of ONNX classifiers (unsat, sat, unknown, timeout)",
-        # Its files name further files (an instances list): never reused by key.
-        Identity(
-            defines=("task",),
-            ignores=(*HELPER_IGNORES, "task.page", "task.result"),  # where it also writes its answers
-            files=("task.onnx", "task.vnnlib", "task.instances"),
-        ),
-        reusable=False,
-        log="verify.tsv",
-        columns=(
-            "idx",
-            "onnx",
-            "vnnlib",
-            "result",
-            "margin",
-            "boxes",
-            "forward_passes",
-            "seconds",
-            "timeout",
-        ),  # fmt: skip
-        headline=("verified", "falsified", "seconds_total"),
-        title=lambda cfg: f"verify {cfg.task.instances or cfg.task.vnnlib}",
-    ),
-    "export": Task(
-        "write test images' pose intervals as ONNX + VNN-LIB verification instances",
-        replace(EVALUATION, ignores=(*EVALUATION.ignores, "task.sequential", "task.look")),  # it samples nothing
-        title=_model_title,
-    ),
-    "viewpoints": Task(
-        "a base classifier's accuracy by camera pitch and roll (synthetic scenes)",
-        # The base classifier alone, identified by its checkpoint's content: no smoothing, no motion.
-        Identity(
-            defines=("task", "data", "model", "seed", "profile"),
-            ignores=("train", "model.trained_for", "attack", "motion", "method", "task.batch_size"),
-            files=("model.checkpoint", *DATA_FILES),
-            needs_model=True,
-        ),
-        headline=("accuracy",),
-        title=lambda cfg: f"viewpoints {cfg.model.variant} {cfg.model.arch}",
-    ),
-    "tables": Task(
-        "the paper's tables and figure from finished MLflow runs",
-        Identity(defines=("task", "profile"), ignores=("data", "model", "motion", "method", "seed", "attack", "train")),
-        reusable=False,  # its result depends on the store's runs, not only on its config
-        title=lambda cfg: f"tables {cfg.task.experiment or 'paper'}",
-    ),
-    "import": Task(
-        "record a certify log computed elsewhere as an MLflow run",
-        # The log's metadata (task.dataset, task.arch, ...) is all it is; one cell may hold one log.
-        Identity(
-            defines=("task",),
-            ignores=HELPER_IGNORES,
-            files=("task.path",),
-            partition=("task.path",),
-        ),
-        log="certify.tsv",
-        columns=CERTIFY_COLUMNS,  # what an imported log needs
-        headline=("certified_accuracy", "clean_accuracy"),
-        title=lambda cfg: f"import {cfg.task.axis} {cfg.task.arch} {cfg.task.variant}",
-    ),
-    "gather": Task(
-        "copy the finished runs of another store into this one",
-        # What it copies depends on the other store's runs, not only on its config.
-        Identity(
-            defines=("task",),
-            ignores=HELPER_IGNORES,
-            files=("task.store",),  # checked before any run starts (mrcert.tasks.inputs)
-        ),
-        reusable=False,
-        title=lambda cfg: f"gather {cfg.task.store}",
-    ),
-}

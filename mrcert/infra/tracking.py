@@ -180,7 +180,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
             experiment_id=experiment_id,
             parent_run_id=parent_id,
             tags=tags,
-            run_name=TASKS[str(cfg.task.name)].title(cfg),
+            run_name=TASKS.of(cfg).title(cfg),
         )
     try:
         with run_ctx as run:
@@ -192,7 +192,7 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
                 with timed_segment(mlflow, previous):
                     earlier = dict(previous.data.tags) if previous is not None else {}
                     yield Tracker(output_dir, run.info.run_id, previous is not None, ident.key, earlier)
-                task = TASKS[str(cfg.task.name)]
+                task = TASKS.of(cfg)
                 with uninterrupted():
                     mlflow.set_tags(seals(output_dir, sealed_files(str(cfg.task.name), task.log)))
             except KeyboardInterrupt:

@@ -8,7 +8,7 @@ the runs that make one complete result: one run, or every shard ``0..N-1`` of on
 Runs with other settings (a ``task.max=2`` smoke run, another alpha, another model) have other
 keys and are never mixed in; an incomplete sharded job leaves the cell empty and says which
 shards are missing. The cell's metrics are recomputed from its (merged) per-image logs by the
-task's own ``summarize``.
+task's own :meth:`~mrcert.infra.tasks.Task.summarize`.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from mrcert.infra.run_store import CELL_COLUMN, KEY_COLUMN, finished_table, newe
 from mrcert.infra.schema import SCHEMAS
 from mrcert.infra.stages import resolve
 from mrcert.infra.tasks import TASKS
-from mrcert.reporting import certify_log, metrics
+from mrcert.reporting import certify_log
 
 KEY, CELL = KEY_COLUMN, CELL_COLUMN
 
@@ -229,7 +229,7 @@ class RunIndex:
         log = self.log(cell)
         if log is None:
             return float("nan")
-        return float(metrics.summarize(str(cell.cfg.task.name), log, cell.cfg).get(name, float("nan")))
+        return float(TASKS.of(cell.cfg).summarize(log, cell.cfg).get(name, float("nan")))
 
 
 def _run_config(run: pd.Series) -> DictConfig:

@@ -23,12 +23,26 @@ import pandas as pd
 from mrcert.errors import MrcertError
 from mrcert.infra.log_keys import CHECK, check_value, owner_path, read_owner, replace_text, write_owner
 from mrcert.infra.seals import sealed_prefix, tag
-from mrcert.infra.tasks import CERTIFY_COLUMNS, TASKS
 
 log = logging.getLogger(__name__)
 
-COHEN_COLUMNS = list(CERTIFY_COLUMNS)
-COLUMNS = list(TASKS["certify"].columns)
+COHEN_COLUMNS = ["idx", "label", "predict", "radius", "correct", "time"]
+"""The columns of Cohen et al.'s certify logs, which an imported log needs and ours begins with."""
+COLUMNS = [
+    *COHEN_COLUMNS,
+    "count_a",
+    "n0",
+    "n",
+    "p_a_lower",
+    "sigma",
+    "axis",
+    "seconds",
+    "projected",
+    "margin",
+    "radius_unit",
+    "sigma_unit",
+]
+"""The columns of a certify run's log (``task=certify``)."""
 
 
 def format_row(row: dict, columns: list[str]) -> str:

@@ -13,6 +13,7 @@ and the smoothed worst motion is the one with the smallest share of votes for th
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,8 +25,9 @@ from mrcert.core.method import ABSTAIN
 from mrcert.core.models import predicted
 from mrcert.core.sampling import image_generator
 from mrcert.errors import MrcertError
+from mrcert.infra.tasks import EVALUATION, FIXED_PREDICT, Task, model_title
 from mrcert.infra.tracking import RunContext
-from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize
+from mrcert.tasks.evaluation import log_headline, prepare, result_log, run_per_image
 
 
 def attack_motions(attack: DictConfig, axis: str, seed: int, index: int) -> torch.Tensor:
@@ -100,4 +102,50 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         return row
 
     run_per_image(log, ev, attack_one, f"attack {cfg.attack.name} k={cfg.attack.k}")
-    return summarize(ctx, "attack", log.path, cfg)
+    return log_headline(ctx, "attack", log.path, cfg)
+
+
+class Attack(Task):
+    summary = "K-perturbed empirical robust accuracy, base and smoothed"
+    identity = replace(
+        EVALUATION,
+        defines=(*EVALUATION.defines, "attack"),
+        ignores=tuple(i for i in EVALUATION.ignores if i != "attack"),
+        ignore_when=FIXED_PREDICT,
+    )
+    log = "attack.tsv"
+    columns = (
+        "idx",
+        "label",
+        "axis",
+        "k",
+        "base_benign",
+        "base_robust",
+        "base_worst",
+        "smoothed_robust",
+        "smoothed_worst",
+        "smoothed_failure",
+        "motion_unit",
+        "seconds",
+    )
+    headline = ("smoothed_robust_accuracy", "base_benign_accuracy")
+
+    def title(self, cfg: DictConfig) -> str:
+        return model_title(cfg)
+
+    def summarize(self, log, cfg: DictConfig) -> dict[str, float]:
+        """Benign and K-perturbed accuracies, base and (with ``task.smoothed``) smoothed."""
+        metrics = {
+            "base_benign_accuracy": float(log["base_benign"].mean()),
+            "base_robust_accuracy": float(log["base_robust"].mean()),
+            "k": float(cfg.attack.k),
+            "attack_radius": float(cfg.attack.radius),
+            "num_images": float(len(log)),
+            "seconds_per_image": float(log["seconds"].mean()),
+        }
+        if cfg.task.smoothed:
+            metrics["smoothed_robust_accuracy"] = float((log["smoothed_robust"] == 1).mean())
+        return metrics
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

@@ -7,16 +7,19 @@ and splits the test set across jobs with ``task.shard`` / ``task.num_shards``.
 from __future__ import annotations
 
 import textwrap
+from dataclasses import replace
 from typing import Any
 
 from omegaconf import DictConfig
 
 from mrcert.core.method import CertifyRequest
+from mrcert.core.methods import build_method
 from mrcert.core.sampling import image_generator
+from mrcert.infra.tasks import EVALUATION, Task, model_title
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting import certify_log
 from mrcert.reporting.plots import curve_figure, save
-from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize
+from mrcert.tasks.evaluation import log_headline, prepare, result_log, run_per_image
 
 
 def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, region: str) -> None:
@@ -75,4 +78,27 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         title,
         dist.region(),
     )
-    return summarize(ctx, "certify", log.path, cfg)
+    return log_headline(ctx, "certify", log.path, cfg)
+
+
+class Certify(Task):
+    summary = "CERTIFY each test image of the smoothed classifier (certify.tsv)"
+    identity = replace(EVALUATION, ignore_when=(("task.sequential", False, "task.look"),))  # fixed n: no looks
+    log = "certify.tsv"
+    columns = tuple(certify_log.COLUMNS)
+    headline = ("certified_accuracy", "clean_accuracy", "mean_samples")
+
+    def title(self, cfg: DictConfig) -> str:
+        return model_title(cfg)
+
+    def summarize(self, log, cfg: DictConfig) -> dict[str, float]:
+        """Certified accuracy at ``motion.radius`` (or the region the method certifies, e.g.
+        pixel-wise smoothing's interval) and the rest of :func:`certify_log.metrics`."""
+        radius = build_method(cfg).judged_at(float(cfg.motion.radius))
+        metrics = certify_log.metrics(log, radius, float(cfg.motion.radius_step), radius)[0]
+        if "n" in log.columns:
+            metrics["mean_samples"] = float(log["n"].mean())
+        return metrics
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

@@ -28,7 +28,6 @@ from mrcert.infra.seals import tag
 from mrcert.infra.tasks import TASKS
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting.certify_log import ResultLog, read_log
-from mrcert.reporting.metrics import summarize as headline_metrics
 
 
 def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards: int) -> list[int]:
@@ -110,9 +109,9 @@ def result_log(ctx: RunContext, task: str, extra: tuple[str, ...] = ()) -> Resul
     return ResultLog(ctx.output_dir / name, columns, ctx.tracker.owner, ctx.tracker.record(), recorded)
 
 
-def summarize(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[str, float]:
+def log_headline(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[str, float]:
     """The task's headline metrics of its finished per-image log, logged with the log."""
-    metrics = headline_metrics(task, read_log(log, list(TASKS[task].columns)), cfg)
+    metrics = TASKS[task].summarize(read_log(log, list(TASKS[task].columns)), cfg)
     log_outputs(ctx, metrics, log)
     return metrics
 

@@ -12,6 +12,7 @@ pieces are ``unsat``. ``mrcert task=verify task.instances=.../instances.csv`` ch
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import write_onnx
 from mrcert.formats.vnnlib import write_vnnlib
 from mrcert.infra.progress import progress
+from mrcert.infra.tasks import EVALUATION, Task, model_title
 from mrcert.infra.tracking import RunContext
 from mrcert.tasks.evaluation import prepare
 
@@ -58,3 +60,14 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     for path in (out / "model.onnx", out / "instances.csv", out / "vnnlib"):
         ctx.tracker.log_artifact(path)
     return {"instances": float(len(rows)), "images": float(len(ev.indices))}
+
+
+class Export(Task):
+    summary = "write test images' pose intervals as ONNX + VNN-LIB verification instances"
+    identity = replace(EVALUATION, ignores=(*EVALUATION.ignores, "task.sequential", "task.look"))  # it samples nothing
+
+    def title(self, cfg: DictConfig) -> str:
+        return model_title(cfg)
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

@@ -32,8 +32,10 @@ from omegaconf import DictConfig
 from mrcert.errors import MrcertError
 from mrcert.infra import seals
 from mrcert.infra.experiment import ensure_experiment
+from mrcert.infra.identity import Identity
 from mrcert.infra.key_migration import GATHERED, migrate, seal_finished
 from mrcert.infra.run_store import FINISHED, all_runs
+from mrcert.infra.tasks import HELPER_IGNORES, Task
 from mrcert.infra.tracking import RunContext
 
 BATCH = 100  # MLflow's log_batch takes at most 100 params or tags and 1000 metrics per call
@@ -183,3 +185,20 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         + ")"
     )
     return {k: float(v) for k, v in totals.items()}
+
+
+class Gather(Task):
+    summary = "copy the finished runs of another store into this one"
+    # What it copies depends on the other store's runs, not only on its config.
+    identity = Identity(
+        defines=("task",),
+        ignores=HELPER_IGNORES,
+        files=("task.store",),  # checked before any run starts (mrcert.tasks.inputs)
+    )
+    reusable = False
+
+    def title(self, cfg: DictConfig) -> str:
+        return f"gather {cfg.task.store}"
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

@@ -23,7 +23,9 @@ from mrcert.data.cache import folder_size
 from mrcert.data.sources import is_scene, load, load_scene
 from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
+from mrcert.infra.identity import Identity
 from mrcert.infra.runtime import resolve_device
+from mrcert.infra.tasks import DATA_FILES, Task
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting.imaging import contact_sheet, save_png
 
@@ -176,3 +178,16 @@ def _motions_sheet(bundle, cfg: DictConfig, ctx: RunContext):
         ctx.output_dir / "motions.png",
         f"{cfg.data.name}: {bundle.classes[label]} under camera motions",
     )
+
+
+class Render(Task):
+    summary = "render a scene under motions, or a dataset's images into the cache"
+    identity = Identity(
+        defines=("task", "data", "motion", "method", "seed", "profile"),
+        ignores=("model", "train", "attack", "task.backend"),
+        files=DATA_FILES,
+        method="result",
+    )
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

@@ -3,13 +3,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 from omegaconf import DictConfig
 
+from mrcert.core.method import ABSTAIN
 from mrcert.core.sampling import image_generator
+from mrcert.infra.tasks import EVALUATION, FIXED_PREDICT, Task, model_title
 from mrcert.infra.tracking import RunContext
-from mrcert.tasks.evaluation import prepare, result_log, run_per_image, summarize
+from mrcert.tasks.evaluation import log_headline, prepare, result_log, run_per_image
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -37,4 +40,27 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         }
 
     run_per_image(log, ev, predict_one, "smooth")
-    return summarize(ctx, "smooth", log.path, cfg)
+    return log_headline(ctx, "smooth", log.path, cfg)
+
+
+class Smooth(Task):
+    summary = "smoothed benign accuracy: PREDICT at each test pose"
+    identity = replace(EVALUATION, ignore_when=FIXED_PREDICT)
+    log = "smooth.tsv"
+    columns = ("idx", "label", "predict", "correct", "n", "axis", "seconds")
+    headline = ("smoothed_benign_accuracy",)
+
+    def title(self, cfg: DictConfig) -> str:
+        return model_title(cfg)
+
+    def summarize(self, log, cfg: DictConfig) -> dict[str, float]:
+        """Smoothed benign accuracy (abstain = wrong)."""
+        return {
+            "smoothed_benign_accuracy": float(log["correct"].mean()),
+            "abstain_rate": float((log["predict"] == ABSTAIN).mean()),
+            "num_images": float(len(log)),
+            "seconds_per_image": float(log["seconds"].mean()),
+        }
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

@@ -23,6 +23,8 @@ from mrcert.data.sources import load
 from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
 from mrcert.infra.experiment import configure, ensure_experiment
+from mrcert.infra.identity import Identity
+from mrcert.infra.tasks import Task
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting import tables
 from mrcert.reporting.cells import RunIndex
@@ -233,3 +235,17 @@ def nearest_views(data: DictConfig, path: Path, classes: tuple[int, ...] = (0, 5
         f"`{data.protocol.get('separation_rule', 'every')}`)."
     )
     return path, sentence
+
+
+class Tables(Task):
+    summary = "the paper's tables and figure from finished MLflow runs"
+    identity = Identity(
+        defines=("task", "profile"), ignores=("data", "model", "motion", "method", "seed", "attack", "train")
+    )
+    reusable = False  # its result depends on the store's runs, not only on its config
+
+    def title(self, cfg: DictConfig) -> str:
+        return f"tables {cfg.task.experiment or 'paper'}"
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

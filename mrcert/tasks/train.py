@@ -38,10 +38,11 @@ from mrcert.data.holdout import validation_split
 from mrcert.data.sources import load
 from mrcert.errors import MrcertError
 from mrcert.infra import checkpoints
-from mrcert.infra.identity import file_identity
+from mrcert.infra.identity import Identity, file_identity
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import resolve_device
 from mrcert.infra.stages import DIGEST_TAG
+from mrcert.infra.tasks import DATA_FILES, Task, model_title
 from mrcert.infra.tracking import RunContext
 
 log = logging.getLogger(__name__)
@@ -231,3 +232,25 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     ctx.tracker.log_artifact(last_path, checkpoints.ARTIFACT_DIR)
     ctx.tracker.set_tags({DIGEST_TAG: file_identity(str(best_path))})  # names the model in evaluations' keys
     return summary | history | {"checkpoint": str(best_path)}
+
+
+class Train(Task):
+    summary = "train a vanilla or motion-augmented base classifier"
+    identity = Identity(
+        defines=("task.name", "data", "model", "train", "motion", "method", "seed", "profile"),
+        # A method's certify.* never trains; model.trained_for is refused here (an evaluation's).
+        ignores=("task", "model.checkpoint", "model.trained_for", "attack", "method.certify"),
+        ignore_when=(  # a vanilla model never sees a motion or a method
+            ("model.variant", "vanilla", "motion"),
+            ("model.variant", "vanilla", "method"),
+        ),
+        files=DATA_FILES,
+        method="model",
+    )
+    headline = ("test_acc",)
+
+    def title(self, cfg: DictConfig) -> str:
+        return model_title(cfg)
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

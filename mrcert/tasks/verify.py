@@ -26,10 +26,12 @@ from mrcert.core.verification import verify_box
 from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import read_onnx
 from mrcert.formats.vnnlib import counterexample_text, read_vnnlib
+from mrcert.infra.identity import Identity
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import machine, resolve_device
+from mrcert.infra.tasks import HELPER_IGNORES, Task
 from mrcert.infra.tracking import RunContext
-from mrcert.tasks.evaluation import result_log, summarize
+from mrcert.tasks.evaluation import log_headline, result_log
 
 DEFAULT_TIMEOUT = 300.0
 
@@ -138,7 +140,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
                 }
             )
     ctx.tracker.log_artifact(results)
-    metrics = summarize(ctx, "verify", log.path, cfg)
+    metrics = log_headline(ctx, "verify", log.path, cfg)
     command = "mrcert task=verify " + " ".join(f"task.{k}={v}" for k, v in t.items() if k != "name" and v is not None)
     text = comparison(pd.read_csv(log.path, sep="\t"), machine(), command)
     if text is not None:
@@ -203,3 +205,35 @@ def comparison(log: pd.DataFrame, machine: str, command: str) -> str | None:
         + ".",
     ]
     return "\n".join(lines) + "\n"
+
+
+class Verify(Task):
+    summary = "verify VNN-LIB properties of ONNX classifiers (unsat, sat, unknown, timeout)"
+    # Its files name further files (an instances list): never reused by key.
+    identity = Identity(
+        defines=("task",),
+        ignores=(*HELPER_IGNORES, "task.page", "task.result"),  # where it also writes its answers
+        files=("task.onnx", "task.vnnlib", "task.instances"),
+    )
+    reusable = False
+    log = "verify.tsv"
+    columns = ("idx", "onnx", "vnnlib", "result", "margin", "boxes", "forward_passes", "seconds", "timeout")
+    headline = ("verified", "falsified", "seconds_total")
+
+    def title(self, cfg: DictConfig) -> str:
+        return f"verify {cfg.task.instances or cfg.task.vnnlib}"
+
+    def summarize(self, log, cfg: DictConfig) -> dict[str, float]:
+        """How many instances each answer got, and the seconds they took."""
+        counts = {r: float((log["result"] == r).sum()) for r in ("unsat", "sat", "unknown", "timeout")}
+        return {
+            "verified": counts["unsat"],
+            "falsified": counts["sat"],
+            "unknown": counts["unknown"],
+            "timeout": counts["timeout"],
+            "instances": float(len(log)),
+            "seconds_total": float(log["seconds"].sum()),
+        }
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)

@@ -30,8 +30,10 @@ from mrcert.data.sources import load
 from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier
+from mrcert.infra.identity import Identity
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import batch_size, resolve_device
+from mrcert.infra.tasks import DATA_FILES, Task
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.writers import markdown
@@ -192,3 +194,21 @@ def occlusion_sheet(maps: list, classes: list[str], path):
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+class Viewpoints(Task):
+    summary = "a base classifier's accuracy by camera pitch and roll (synthetic scenes)"
+    # The base classifier alone, identified by its checkpoint's content: no smoothing, no motion.
+    identity = Identity(
+        defines=("task", "data", "model", "seed", "profile"),
+        ignores=("train", "model.trained_for", "attack", "motion", "method", "task.batch_size"),
+        files=("model.checkpoint", *DATA_FILES),
+        needs_model=True,
+    )
+    headline = ("accuracy",)
+
+    def title(self, cfg: DictConfig) -> str:
+        return f"viewpoints {cfg.model.variant} {cfg.model.arch}"
+
+    def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+        return run(cfg, ctx)
