@@ -71,6 +71,7 @@ RUNS_ANYWHERE = (
     "data.extent",
     "per_task",
     "task._target_",
+    "attack._target_",
 )
 """Where outputs go, how runs are tracked and scheduled, a bound only validation reads, an
 experiment's settings of single tasks (what they set is in the task's own keys), and the class

@@ -305,7 +305,7 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
     # Each row is PREDICT at that test pose, recomputed here through the classifier directly.
     from mrcert.data.sources import load
     from mrcert.infra.checkpoints import load_classifier
-    from mrcert.tasks.attack import attack_motions
+    from mrcert.tasks.attack import build_attack
 
     bundle = load(cfg.data)
     samples = bundle.samples(crop=CameraMotionSmoothing(("tz",), (0.1,)).crop_bound(6.0))
@@ -333,7 +333,7 @@ def test_smooth_and_attack_tasks(trained, tmp_path):
             i, render = int(row.idx), samples[int(row.idx)].renderer()
             # The base columns: right at the test pose (benign) and at all K perturbed poses (robust;
             # the test pose is not one of them, so robust can exceed benign).
-            motions = attack_motions(acfg.attack, "tz", int(acfg.seed), i)
+            motions = build_attack(acfg.attack).motions("tz", int(acfg.seed), i)
             with torch.inference_mode():
                 at = model(render(torch.cat([torch.zeros(1, 6, dtype=torch.float64), motions]))).argmax(1)
             assert (row.base_benign, row.base_robust) == (int(at[0] == row.label), int((at[1:] == row.label).all()))
@@ -515,7 +515,7 @@ def test_sequential_smooth_and_attack_are_predict_sequential_at_each_pose_whatev
     from mrcert.core.sequential import PredictDesign
     from mrcert.data.sources import load
     from mrcert.infra.checkpoints import load_classifier
-    from mrcert.tasks.attack import attack_motions
+    from mrcert.tasks.attack import build_attack
 
     ck = f"model.checkpoint={best(trained)}"
     logs = {}
@@ -546,7 +546,7 @@ def test_sequential_smooth_and_attack_are_predict_sequential_at_each_pose_whatev
     for _, row in attacked.iterrows():
         i, render = int(row.idx), samples[int(row.idx)].renderer()
         expected = (1, "-")
-        for k, m in enumerate(attack_motions(acfg.attack, "tz", int(acfg.seed), i)):
+        for k, m in enumerate(build_attack(acfg.attack).motions("tz", int(acfg.seed), i)):
             decision, _ = smoothed.predict_sequential(
                 render, 100, 0.01, 20, image_generator(acfg.seed, i, "predict", k), m
             )
@@ -554,3 +554,26 @@ def test_sequential_smooth_and_attack_are_predict_sequential_at_each_pose_whatev
                 expected = (0, "abstain" if decision == ABSTAIN else "wrong")
                 break
         assert (row.smoothed_robust, row.smoothed_failure) == expected
+
+
+@pytest.mark.parametrize("name", ["uniform", "grid"])
+def test_each_attack_is_the_class_its_yaml_names_and_tries_k_motions_on_its_axis(name):
+    """``attack=...`` builds the class of its ``_target_``: K motions on the run's axis alone,
+    within [-r, r]; the grid evenly spaced from -r to r, the uniform draws seeded per image."""
+    from mrcert.core import attacks
+    from mrcert.tasks.attack import build_attack
+
+    cfg = compose_cfg(["task=attack", f"attack={name}", "attack.k=7", "attack.radius=0.02", "motion=tz"])
+    attack = build_attack(cfg.attack)
+    assert type(attack) is {"uniform": attacks.Uniform, "grid": attacks.Grid}[name]
+    motions = attack.motions("tz", 0, 3)
+    assert motions.shape == (7, 6) and (motions[:, [0, 1, 3, 4, 5]] == 0).all()
+    assert (motions[:, 2].abs() <= 0.02).all()
+    again, other = attack.motions("tz", 0, 3), attack.motions("tz", 0, 4)
+    assert torch.equal(motions, again)
+    if name == "grid":
+        assert torch.equal(motions[:, 2], torch.linspace(-0.02, 0.02, 7, dtype=torch.float64)) and torch.equal(
+            motions, other
+        )
+    else:
+        assert not torch.equal(motions, other)

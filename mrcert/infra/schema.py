@@ -275,6 +275,7 @@ class Model:
 
 @dataclass
 class AttackGroup:
+    _target_: str = MISSING  # the class that draws its motions (mrcert.core.attacks)
     name: str = MISSING
     k: int = MISSING
     radius: float = MISSING

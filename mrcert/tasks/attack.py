@@ -18,8 +18,10 @@ from typing import Any
 
 import numpy as np
 import torch
+from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from mrcert.core.attacks import Attack as MotionAttack
 from mrcert.core.geometry import axis_index, unit
 from mrcert.core.method import ABSTAIN
 from mrcert.core.models import predicted
@@ -30,19 +32,12 @@ from mrcert.infra.tracking import RunContext
 from mrcert.tasks.evaluation import log_headline, prepare, result_log, run_per_image
 
 
-def attack_motions(attack: DictConfig, axis: str, seed: int, index: int) -> torch.Tensor:
-    """The K motions (K, 6) of the attack on one test image."""
-    k, r = int(attack.k), float(attack.radius)
-    if attack.name == "uniform":
-        g = image_generator(seed, index, "attack")
-        values = (torch.rand(k, generator=g, dtype=torch.float64) * 2 - 1) * r
-    elif attack.name == "grid":
-        values = torch.linspace(-r, r, k, dtype=torch.float64)
-    else:
-        raise MrcertError(f"attack.name={attack.name!r} is not allowed: uniform or grid")
-    motions = torch.zeros(k, 6, dtype=torch.float64)
-    motions[:, axis_index(axis)] = values
-    return motions
+def build_attack(attack: DictConfig) -> MotionAttack:
+    """The attack ``attack`` names by its ``_target_``."""
+    built = instantiate(attack)
+    if not isinstance(built, MotionAttack):
+        raise MrcertError(f"attack._target_={attack._target_!r} is not an attack (mrcert.core.attacks.Attack)")
+    return built
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -51,12 +46,13 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     if not ev.method.single:
         raise MrcertError(f"task=attack perturbs one axis; motion={ev.method.axes_label} smooths several")
     axis = ev.method.axes[0]
+    attack = build_attack(cfg.attack)
     log = result_log(ctx, "attack")
 
     @torch.inference_mode()
     def attack_one(i: int) -> dict[str, Any]:
         sample = ev.samples[i]
-        motions = attack_motions(cfg.attack, axis, int(cfg.seed), i)
+        motions = attack.motions(axis, int(cfg.seed), i)
         zero = torch.zeros(1, 6, dtype=torch.float64)
         render = ev.render(sample)
         images = render(torch.cat([zero, motions]))
