@@ -19,7 +19,7 @@ from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.core.geometry import matrix_to_motion
 from mrcert.core.projection import camera_points
 from mrcert.core.smoothing import CameraMotionSmoothing
-from mrcert.data.datasets import render_poses
+from mrcert.data.datasets import DataBundle, render_poses
 from mrcert.data.protocols import look_at_poses
 from mrcert.data.sources import load
 from mrcert.errors import ConfigError, MrcertError
@@ -569,3 +569,20 @@ def test_the_pitch_law_draws_pitches_uniform_in_angle_or_over_the_sphere():
     rng = np.random.default_rng(2)
     rng.uniform(0.0, 360.0, size=100)  # the yaws of the first batch (twice the poses asked for)
     assert np.array_equal(a[:, 1], rng.uniform(0.0, 90.0, size=100)[:50])
+
+
+@pytest.mark.parametrize(
+    "name, scene", [("metaroom_synth", False), ("tabletop_synth", False), ("custom", False), ("metaroom", False),
+                    ("testscene", True), ("pointcloud", True)],
+)  # fmt: skip
+def test_each_data_option_names_the_class_that_builds_it(name, scene, tmp_path):
+    """``conf/data/<name>.yaml``'s ``_target_`` is a dataset (DataBundle) or a scene source, and
+    a class that is neither, or none, is refused in one line."""
+    from mrcert.data.sources import SceneSource, is_scene, source_class
+
+    data = data_cfg(name, [], tmp_path)
+    assert issubclass(source_class(data), SceneSource if scene else DataBundle) and is_scene(data) == scene
+    for target, says in [("mrcert.nothing.Here", "names no class"), ("mrcert.errors.MrcertError", "neither a dataset")]:
+        data._target_ = target
+        with pytest.raises(MrcertError, match=says):
+            source_class(data)

@@ -72,6 +72,7 @@ RUNS_ANYWHERE = (
     "per_task",
     "task._target_",
     "attack._target_",
+    "data._target_",
 )
 """Where outputs go, how runs are tracked and scheduled, a bound only validation reads, an
 experiment's settings of single tasks (what they set is in the task's own keys), and the class

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mrcert.core.methods import current_names
 from mrcert.errors import MrcertError
+from mrcert.infra.config import CONF_DIR
 from mrcert.infra.store import FileLock, ensure_sqlite_store, probe_server
 from mrcert.infra.tasks import TASKS
 
@@ -186,9 +187,21 @@ def artifact(client, run_id: str, path: str) -> Path:
         raise MrcertError(f"runs:/{run_id}/{path} cannot be fetched from MLflow: {exc}") from None
 
 
+TARGETED = ("task", "data", "attack")
+"""The groups whose options name the class that runs or builds them (``_target_``)."""
+
+
 def read_run_config(path: Path) -> DictConfig:
-    """A run's ``resolved_config.yaml`` as this version reads it (former method names renamed)."""
-    return OmegaConf.create(current_names(OmegaConf.to_container(OmegaConf.load(path))))
+    """A run's ``resolved_config.yaml`` as this version reads it: former method names renamed, and
+    a config written before options named their classes given the ``_target_`` its option's YAML
+    names now (by the option's ``name``)."""
+    data = current_names(OmegaConf.to_container(OmegaConf.load(path)))
+    for group in TARGETED:
+        node = data.get(group)
+        option = CONF_DIR / group / f"{node.get('name')}.yaml" if isinstance(node, dict) else None
+        if option is not None and "_target_" not in node and option.is_file():
+            node["_target_"] = OmegaConf.load(option).get("_target_")
+    return OmegaConf.create(data)
 
 
 def run_file(client, run_id: str, output_dir: str | None, name: str) -> Path | None:

@@ -47,11 +47,12 @@ COMMON_IGNORES = (
     "per_task",
     "task._target_",
     "attack._target_",
+    "data._target_",
 )
 """Where outputs go and how runs are tracked or scheduled, bounds that only validation reads
 (``data.extent``), an experiment's settings of single tasks (``per_task``: the task's own keys,
-which are part of its result, hold them) and the classes that run a task and draw an attack's
-motions (``task._target_``, ``attack._target_``: their names say which): never part of a result."""
+which are part of its result, hold them) and the classes that run a task, draw an attack's
+motions and build the data (``*._target_``: their names say which): never part of a result."""
 
 AS_BUILT = tuple(
     (key, value, key)

@@ -171,6 +171,7 @@ class Crop:
 
 @dataclass
 class Scene:
+    _target_: str = MISSING  # the class that builds it (mrcert.data)
     name: str = MISSING
     source: str = MISSING
     path: str | None = None
@@ -198,6 +199,7 @@ class Ambient:
 
 @dataclass
 class Synthetic:
+    _target_: str = MISSING  # the class that builds it (mrcert.data)
     name: str = MISSING
     source: str = MISSING
     num_classes: int = MISSING
@@ -217,6 +219,7 @@ class Synthetic:
 
 @dataclass
 class Released:
+    _target_: str = MISSING  # the class that builds it (mrcert.data)
     name: str = MISSING
     source: str = MISSING
     path: str | None = None
@@ -231,6 +234,7 @@ class Released:
 
 @dataclass
 class Custom:
+    _target_: str = MISSING  # the class that builds it (mrcert.data)
     name: str = MISSING
     source: str = MISSING
     path: str = MISSING
