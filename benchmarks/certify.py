@@ -53,9 +53,9 @@ def run(args, arch: str) -> None:
     import torch
     from hydra import compose, initialize_config_dir
 
+    from mrcert.core.camera_motion import CameraMotionSmoothing
     from mrcert.core.models import build_model, for_inference
     from mrcert.core.sampling import SmoothedClassifier, image_generator
-    from mrcert.core.smoothing import CameraMotionSmoothing
     from mrcert.data.sources import load
     from mrcert.infra.config import CONF_DIR
     from mrcert.infra.runtime import batch_size, render_batch

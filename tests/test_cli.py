@@ -104,13 +104,13 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
     profile, with the profile's architectures: the small CNN on 2 CPU cores, the paper's ResNets
     for a GPU) trained, certified, smoothed and attacked at K = 5 and 100, the tabletop experiment
     beside it, and the tables and evidence page built from exactly those runs."""
-    from mrcert.reporting import tables
+    from mrcert.reporting import paper_tables
     from mrcert.reporting.experiment_cells import sweep_combos
     from tests.conftest import compose_cfg
 
     recipe = make_recipe("reproduce-tables", f"PROFILE={profile}")
     experiments = {a.split("=", 1)[1] for c in recipe for a in c if a.startswith("experiment=")}
-    reproduction = tables.REPRODUCTION.format(profile=profile)
+    reproduction = paper_tables.REPRODUCTION.format(profile=profile)
     assert experiments == {reproduction, "tabletop"}
     stages = {
         (a, *sorted(x for x in c if x.startswith("attack.k") or x.startswith("task.sequential")))
@@ -134,7 +134,7 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
         and "task.page=docs/results.md" in page
         and not any(a.startswith("task.experiment=") for a in page)
     )  # each table from its own experiment: the MetaRoom ones from the reproduction, tabletop from its own
-    own = {t.name: t.experiment.format(profile=profile) for t in tables.TABLES if t.data is not None}
+    own = {t.name: t.experiment.format(profile=profile) for t in paper_tables.TABLES if t.data is not None}
     assert set(own.values()) == {reproduction, "tabletop"}
 
 

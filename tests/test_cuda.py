@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import torch
 
+from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.projection import locality_order, project
 from mrcert.core.sampling import SmoothedClassifier, image_generator
-from mrcert.core.smoothing import CameraMotionSmoothing
 from tests.conftest import PAPER_K, random_cloud, random_motions
 
 pytestmark = [

@@ -14,11 +14,11 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from PIL import Image
 
+from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.crop import CropBound
 from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.core.geometry import matrix_to_motion
 from mrcert.core.projection import camera_points
-from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.data.datasets import DataBundle, render_poses
 from mrcert.data.protocols import look_at_poses
 from mrcert.data.sources import load

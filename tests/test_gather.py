@@ -13,7 +13,7 @@ import pytest
 
 from mrcert.infra.checkpoints import local_checkpoint, read_checkpoint
 from mrcert.infra.runtime import machine
-from mrcert.reporting import results_page, tables
+from mrcert.reporting import paper_tables, results_page
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
 from mrcert.reporting.experiment_cells import ExperimentCells
@@ -76,10 +76,10 @@ def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
     done = gather(page_store, moved)  # those two and the laptop's gather run
     assert (done["gathered"], done["without_artifacts"], done["kept_keys"]) == (3, 0, 0)
     there, here = index(gpu_store, "paper"), index(page_store, "paper")
-    ours = tables.TABLE3.build(here, name="t")
-    assert ours.equals(tables.TABLE3.build(there, name="t")) and ours.notna().any().any()
+    ours = paper_tables.TABLE3.build(here, name="t")
+    assert ours.equals(paper_tables.TABLE3.build(there, name="t")) and ours.notna().any().any()
     # The cell binds the copied model, which loads here.
-    cell = here.cell("reproduce_paper", ("motion=tz", "model.variant=vanilla"), tables.CERTIFIED)
+    cell = here.cell("reproduce_paper", ("motion=tz", "model.variant=vanilla"), paper_tables.CERTIFIED)
     assert cell.cfg.model.checkpoint == f"runs:/{cell.train_run}/checkpoints/best.pt"
     assert read_checkpoint(local_checkpoint(cell.cfg.model.checkpoint))["arch"] == "small_cnn"
     # Each copy keeps its name, times, params and every metric's history.
@@ -114,7 +114,7 @@ def test_gathered_runs_fill_the_same_cells_here_as_there(gpu_store, tmp_path):
     dst.set_terminated(cell.runs[0]["run_id"], "KILLED")
     again = gather(page_store, moved)
     assert (again["gathered"], again["already_here"]) == (1, 2)
-    assert tables.TABLE3.build(index(page_store, "paper"), name="t").equals(ours)
+    assert paper_tables.TABLE3.build(index(page_store, "paper"), name="t").equals(ours)
 
 
 def test_a_store_that_is_not_one_is_refused_before_any_run(tmp_path):

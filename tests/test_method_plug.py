@@ -51,7 +51,7 @@ def test_no_method_is_named_like_a_config_group():
 def test_the_check_finds_a_method_named_in_each_way():
     assert _naming('if cfg.method.name == "camera_motion":\n    pass')
     assert _naming('RULE = ("method.name", "camera_motion")')
-    assert _naming("from mrcert.core.smoothing import CameraMotionSmoothing")
+    assert _naming("from mrcert.core.camera_motion import CameraMotionSmoothing")
     assert not _naming('if "motion" in ignored:\n    words.remove(str(cfg.method.name))')
 
 

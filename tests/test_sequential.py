@@ -6,9 +6,9 @@ import torch
 from scipy.stats import binom, norm
 from statsmodels.stats.proportion import proportion_confint
 
+from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.sampling import SmoothedClassifier, image_generator
 from mrcert.core.sequential import TOLERANCE, PredictDesign, SequentialDesign, predict_grid
-from mrcert.core.smoothing import CameraMotionSmoothing
 from tests.test_smoothing import Constant, tiny_sample
 
 

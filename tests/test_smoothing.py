@@ -12,10 +12,10 @@ from statsmodels.stats.proportion import proportion_confint
 from torch import nn
 
 from mrcert.__main__ import run_task
+from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.method import ABSTAIN
 from mrcert.core.sampling import SmoothedClassifier, image_generator
 from mrcert.core.sequential import lower_confidence_bound
-from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError
 from mrcert.infra.runtime import render_batch

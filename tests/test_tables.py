@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from mrcert.__main__ import run_task
-from mrcert.reporting import certify_log, paper_results, results_page, tables
+from mrcert.reporting import certify_log, paper_results, paper_tables, results_page
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
 from mrcert.reporting.experiment_cells import ExperimentCells
@@ -63,13 +63,13 @@ def hand(out: Path, name: str, file: str, column: str, value=1) -> float:
 
 def test_cells_hold_exactly_the_runs_of_their_config(store):
     src = source(store)
-    df = tables.TABLE3.build(src)
+    df = paper_tables.TABLE3.build(src)
     vanilla = df.loc[("Tz", "Smoothed Vanilla SmallCNN")]
     certify = read_log(store / "runs" / "certify" / "certify.tsv")
     assert len(certify) == 2  # the demo's every 12th of 18 test images
     assert vanilla["Certified Acc"] == pytest.approx(((certify.correct == 1) & (certify.radius >= 0.1)).mean())
     # The evidence page's version: both procedures' cost per image (no sequential run here: empty).
-    page = tables.TABLE3_SEQUENTIAL.build(source(store)).loc[("Tz", "Smoothed Vanilla SmallCNN")]
+    page = paper_tables.TABLE3_SEQUENTIAL.build(source(store)).loc[("Tz", "Smoothed Vanilla SmallCNN")]
     assert page["s per image"] == pytest.approx(certify.seconds.mean())
     assert np.isnan(page["s per image, sequential"]) and np.isnan(page["Certified Acc, sequential"])
     assert vanilla["Benign Acc"] == pytest.approx(hand(store, "smooth", "smooth.tsv", "correct"))
@@ -84,17 +84,17 @@ def test_cells_hold_exactly_the_runs_of_their_config(store):
 
 
 def test_a_smoke_run_or_other_settings_never_change_a_cell(store):
-    before = tables.TABLE3.build(source(store))
+    before = paper_tables.TABLE3.build(source(store))
     # A smoke run, another alpha and a sequential run of the same model after the full run.
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.max=1"], "smoke")
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.alpha=0.3"], "alpha")
     run(store, [*DEMO, "task=smooth", "model.variant=vanilla", "task.max=1"], "smoke-smooth")
     run(store, [*DEMO, "task=certify", "model.variant=vanilla", "task.sequential=true"], "sequential")
     after_src = source(store)
-    after = tables.TABLE3.build(after_src)
+    after = paper_tables.TABLE3.build(after_src)
     pd.testing.assert_frame_equal(after, before)
     # The page prints the sequential columns beside the fixed-n ones in the same format.
-    page = tables.TABLE3_SEQUENTIAL.build(after_src, True, "page").loc[("Tz", "Smoothed Vanilla SmallCNN")]
+    page = paper_tables.TABLE3_SEQUENTIAL.build(after_src, True, "page").loc[("Tz", "Smoothed Vanilla SmallCNN")]
     sequential = read_log(store / "runs" / "sequential" / "certify.tsv")
     at_radius = ((sequential.correct == 1) & (sequential.radius >= 0.1)).mean()
     assert page["Certified Acc, sequential"] == f"{at_radius:.3f}"
@@ -119,7 +119,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=0"], f"{task}-0")
     overrides = tuple([*SETTINGS, "task.skip=1", "task.max=4"])
     src = ExperimentCells(RunIndex.load("mrcert"), "quick", experiment="demo", overrides=overrides)
-    early = tables.TABLE3.build(src)
+    early = paper_tables.TABLE3.build(src)
     assert early.loc[("Tz", "Smoothed Vanilla SmallCNN"), ["Benign Acc", "5-pert Emp. Acc"]].isna().all()
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
     assert notes[("Tz / Smoothed Vanilla SmallCNN", "Benign Acc")] == "shards [1] of task.num_shards=2 not finished"
@@ -127,7 +127,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     for task in TASKS:
         run(out, [*DEMO, f"task={task}", *shard, "task.shard=1"], f"{task}-1")
     src = ExperimentCells(RunIndex.load("mrcert"), "quick", experiment="demo", overrides=overrides)
-    df = tables.TABLE3.build(src)
+    df = paper_tables.TABLE3.build(src)
     smooth, attack, certify = (
         pd.concat([read_log(out / "runs" / f"{task}-{i}" / f"{task}.tsv", ["idx"]) for i in (0, 1)]) for task in TASKS
     )
@@ -137,7 +137,7 @@ def test_a_sharded_cell_is_filled_only_when_every_shard_finished(tmp_path):
     assert row["5-pert Emp. Acc"] == pytest.approx((attack.smoothed_robust == 1).mean())
     certified = (certify.correct == 1) & (certify.radius >= 0.1) & (certify.predict >= 0)
     assert row["Certified Acc"] == pytest.approx(certified.mean())
-    radii, acc = tables.curves(src)[0]["tz"]["Smoothed Vanilla SmallCNN"]  # the figure's curve: the merged log's
+    radii, acc = paper_tables.curves(src)[0]["tz"]["Smoothed Vanilla SmallCNN"]  # the figure's curve: the merged log's
     expected_radii, expected_acc = certify_log.curve(certify)
     assert radii.tolist() == expected_radii.tolist() and acc.tolist() == expected_acc.tolist()
     assert acc[0] == pytest.approx(((certify.correct == 1) & (certify.predict >= 0)).mean())
@@ -149,18 +149,18 @@ def test_imported_logs_fill_cells_only_when_asked_and_only_unambiguously(store, 
     log = tmp_path / "cohen.tsv"
     log.write_text(COHEN)
     run(store, ["experiment=demo", "task=import", f"task.path={log}", "model.variant=augmented"], "import")
-    ours = tables.TABLE3.build(source(store))
+    ours = paper_tables.TABLE3.build(source(store))
     assert np.isnan(ours.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])  # not mixed into ours
-    imported = tables.TABLE3.build(source(store, certify_task="import"))
+    imported = paper_tables.TABLE3.build(source(store, certify_task="import"))
     assert imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == pytest.approx(0.4)
     assert np.isnan(imported.loc[("Tz", "Smoothed Augmented SmallCNN"), "Benign Acc"])
-    radii, acc = tables.curves(source(store, certify_task="import"))[0]["tz"]["Smoothed Augmented SmallCNN"]
+    radii, acc = paper_tables.curves(source(store, certify_task="import"))[0]["tz"]["Smoothed Augmented SmallCNN"]
     assert radii.tolist() == [0.0, 0.05, 0.2, 0.5] and acc.tolist() == pytest.approx([0.6, 0.6, 0.4, 0.2])
     other = tmp_path / "other.tsv"
     other.write_text(COHEN.replace("0.5\t1", "0.05\t1"))
     run(store, ["experiment=demo", "task=import", f"task.path={other}", "model.variant=augmented"], "import2")
     src = source(store, certify_task="import")
-    assert np.isnan(tables.TABLE3.build(src).loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])
+    assert np.isnan(paper_tables.TABLE3.build(src).loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"])
     notes = src.sources("table3_certified").set_index(["row", "column"])["note"]
     assert "ambiguous: 2 different finished runs" in notes[("Tz / Smoothed Augmented SmallCNN", "Certified Acc")]
 
@@ -186,7 +186,7 @@ def test_table_3_of_the_released_metaroom_from_imported_logs(tmp_path):
 
 def test_written_files_keep_empty_cells_empty_and_latex_balanced(store, tmp_path):
     src = source(store)
-    df = tables.TABLE3.build(src)
+    df = paper_tables.TABLE3.build(src)
     md, tex, csv = write(df, tmp_path / "t3", "Table 3: $x$ & y_z ~^")
     back = pd.read_csv(csv, keep_default_na=False)
     assert back.loc[back.Model == "Smoothed Augmented SmallCNN", "Certified Acc"].tolist() == [""]
@@ -197,7 +197,7 @@ def test_written_files_keep_empty_cells_empty_and_latex_balanced(store, tmp_path
     columns = len(df.reset_index().columns)
     assert len(lines) == 1 + len(df) and all(ln.count("&") - ln.count(r"\&") == columns - 1 for ln in lines)
     assert r"\caption{Table 3: \$x\$ \& y\_z \textasciitilde{}\textasciicircum{}}" in tex.read_text()
-    shown = tables.TABLE3.build(source(store), show_paper=True)
+    shown = paper_tables.TABLE3.build(source(store), show_paper=True)
     assert shown.loc[("Tz", "Smoothed Augmented SmallCNN"), "Certified Acc"] == ""  # no paper value for a SmallCNN
 
 
@@ -210,7 +210,7 @@ def test_sweep_table_from_a_parents_children(store):
     (parent,) = mlflow.search_runs(
         search_all_experiments=True, filter_string="tags.`mrcert.multirun` = 'parent'", output_format="list"
     )
-    sweep = tables.SWEEP.build(source(store, parent=parent.info.run_id))
+    sweep = paper_tables.SWEEP.build(source(store, parent=parent.info.run_id))
     assert [idx[:2] for idx in sweep.index] == [("tz", 0.05), ("tz", 0.1)]
     assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0.2"] == pytest.approx(0.4)
     assert sweep.loc[("tz", 0.1, "Vanilla ResNet-18"), "r=0"] == pytest.approx(0.6)
@@ -244,7 +244,7 @@ def test_every_declared_table_takes_each_cell_from_its_own_measure():
     the smoothed 5- and 100-perturbed, the tabletop table the mean benign accuracy over the axes
     beside each axis's 10-perturbed accuracy; each cell names the run it came from."""
     src = ExperimentCells(Encoded(), "quick")
-    by_name = {t.name: t for t in tables.TABLES}
+    by_name = {t.name: t for t in paper_tables.TABLES}
     t1 = by_name["table1_augmented"].build(src)
     assert list(t1.columns) == ["SmallCNN Base", "SmallCNN Smoothed"]
     assert [a for a, _ in t1.index[::2]] == ["Tz", "Tx", "Ty", "Rz", "Rx", "Ry"]
@@ -316,8 +316,8 @@ def test_the_evidence_page_states_the_numbers_of_its_runs(store, tables_run):
     certified = (clog.correct == 1) & (clog.radius >= radius) & (clog.predict >= 0)
     # Each cell beside the paper's value for its axis and variant, of the paper's ResNet-18.
     paper = [
-        tables.paper_value("smoothed", "benign", None, "tz", "resnet18", "vanilla"),
-        tables.paper_value("smoothed", "perturbed", 5, "tz", "resnet18", "vanilla"),
+        paper_tables.paper_value("smoothed", "benign", None, "tz", "resnet18", "vanilla"),
+        paper_tables.paper_value("smoothed", "perturbed", 5, "tz", "resnet18", "vanilla"),
         paper_results.CERTIFIED[("tz", "resnet18", "vanilla")],
     ]
     ours = [slog.correct.mean(), alog.smoothed_robust.mean(), certified.mean()]
@@ -398,9 +398,9 @@ def test_the_pages_time_per_stage_sums_every_run_behind_its_tables(store):
     for overrides, folder in made.values():
         run(store, [*DEMO, *overrides, "model.variant=vanilla", "task.batch_size=64", *extra], folder)
     src = ExperimentCells(RunIndex.load("mrcert"), "quick", experiment="demo", overrides=(*SETTINGS, *extra))
-    for table in tables.tables_for(src):  # as task=tables builds them before the page
+    for table in paper_tables.tables_for(src):  # as task=tables builds them before the page
         table.build(src)
-    tables.TABLE3_SEQUENTIAL.build(src)
+    paper_tables.TABLE3_SEQUENTIAL.build(src)
     times = results_page.stage_times(src).set_index("stage")
 
     def hours(folder: str) -> float:

@@ -9,7 +9,7 @@ run exists, naming the method and what it serves. Three implementations:
 
 * the two smoothing methods, on the sampling engine of :mod:`mrcert.core.sampling` (vote
   counting, Cohen's CERTIFY and PREDICT, ABSTAIN): camera motion smoothing
-  (:class:`~mrcert.core.smoothing.CameraMotionSmoothing`, ``method=camera_motion``) and
+  (:class:`~mrcert.core.camera_motion.CameraMotionSmoothing`, ``method=camera_motion``) and
   pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing`, ``method=pixelwise``);
 * deterministic verification by bound propagation
   (:class:`~mrcert.core.verification.BoundPropagation`, ``method=bound_propagation``).

@@ -40,7 +40,7 @@ class Registered:
 
 METHODS: dict[str, Registered] = {
     # Camera motion smoothing's parameters are all in motion.*: its method group adds nothing.
-    "camera_motion": Registered("mrcert.core.smoothing:CameraMotionSmoothing", MethodConfig, unkeyed=("method",)),
+    "camera_motion": Registered("mrcert.core.camera_motion:CameraMotionSmoothing", MethodConfig, unkeyed=("method",)),
     # Pixel noise: one model serves every axis.
     "pixelwise": Registered("mrcert.core.pixelwise:PixelwiseSmoothing", PixelwiseConfig, unkeyed_model=("motion",)),
     # Deterministic: it certifies a model trained for another method (model.trained_for) or vanilla.

@@ -20,13 +20,13 @@ import torch
 from omegaconf import DictConfig
 from scipy.stats import norm
 
+from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
 from mrcert.core.method import ABSTAIN, Certificate, SceneRender, single_axis
 from mrcert.core.pose_bounds import piece_bounds
 from mrcert.core.sampling import SmoothedClassifier, Smoothing, image_generator
 from mrcert.core.sequential import lower_confidence_bound
-from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.errors import ConfigError, MrcertError
 
 NOISE_BLOCK = 16

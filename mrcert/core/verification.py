@@ -33,13 +33,13 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import axis_index, is_translation, unit
 from mrcert.core.method import ABSTAIN, BaseClassifier, Certificate, CertifyRequest, Method, SceneRender, single_axis
 from mrcert.core.models import predicted
 from mrcert.core.pose_bounds import image_boxes
 from mrcert.core.propagation import BoundNetwork
-from mrcert.core.smoothing import CameraMotionSmoothing
 from mrcert.errors import ConfigError, MrcertError
 
 SEARCH_STEPS = 8

@@ -1,6 +1,6 @@
 """Where tables take their cells from: an experiment's jobs (the sweep of its config), the
 measure a column shows (a task's metric with the overrides that define it), and the record of
-which runs filled each cell. Generic: the paper's tables (:mod:`mrcert.reporting.tables`), the
+which runs filled each cell. Generic: the paper's tables (:mod:`mrcert.reporting.paper_tables`), the
 evidence page and its sections all read their cells through a :class:`ExperimentCells`.
 """
 

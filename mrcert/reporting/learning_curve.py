@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
-from mrcert.reporting.tables import arch_name
+from mrcert.reporting.paper_tables import arch_name
 
 EXPERIMENTS = ("learning_curve", "learning_curve_any", "learning_curve_resnet18")
 """The experiments whose train runs make the curve, the page's architecture (the small CNN) first."""

@@ -14,12 +14,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mrcert.reporting import certify_log, learning_curve, paper_results, side_by_side, tables
+from mrcert.reporting import certify_log, learning_curve, paper_results, paper_tables, side_by_side
 from mrcert.reporting.cells import Cell, compose_config
 from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
-from mrcert.reporting.plots import save
-from mrcert.reporting.tables import (
+from mrcert.reporting.paper_tables import (
     AXIS_NAMES,
     CERTIFIED,
     REPRODUCTION,
@@ -28,6 +27,7 @@ from mrcert.reporting.tables import (
     model_label,
     robust,
 )
+from mrcert.reporting.plots import save
 from mrcert.reporting.writers import as_text, markdown
 
 
@@ -395,7 +395,7 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
     if not filled:
         return missing
     jobs = list(filled.values())
-    table = tables.TABLE3.build(paper, show_paper=True, name="paper_profile")
+    table = paper_tables.TABLE3.build(paper, show_paper=True, name="paper_profile")
     cfg = jobs[0].certify.cfg
     return {
         "profile": PAPER_PROFILE,

@@ -26,7 +26,7 @@ from mrcert.infra.experiment import configure, ensure_experiment
 from mrcert.infra.identity import Identity
 from mrcert.infra.tasks import Task
 from mrcert.infra.tracking import RunContext
-from mrcert.reporting import tables
+from mrcert.reporting import paper_tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.experiment_cells import ExperimentCells
 from mrcert.reporting.imaging import contact_sheet
@@ -61,9 +61,9 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         link=f"{str(t.ui_url).rstrip('/')}/#/experiments/{experiment_id}/runs/{{run_id}}",
     )
     paper = bool(t.show_paper)
-    built = {table.name: (table.build(src, paper), table.caption) for table in tables.tables_for(src)}
-    if t.print not in {table.name for table in tables.TABLES}:
-        names = ", ".join(table.name for table in tables.TABLES)
+    built = {table.name: (table.build(src, paper), table.caption) for table in paper_tables.tables_for(src)}
+    if t.print not in {table.name for table in paper_tables.TABLES}:
+        names = ", ".join(table.name for table in paper_tables.TABLES)
         raise MrcertError(f"task.print={t.print!r} is not allowed: one of {names}")
     out = Path(t.output_dir)
     page = Path(t.page) if t.page else None
@@ -90,7 +90,7 @@ def write_all(ctx: RunContext, src: ExperimentCells, built: dict, out: Path, pag
         metrics[f"{name}_filled_cells"] = float(
             sum(1 for v in values if isinstance(v, str) and v.strip() or isinstance(v, float) and not np.isnan(v))
         )
-    fig = tables.curves_figure(*tables.curves(src))
+    fig = paper_tables.curves_figure(*paper_tables.curves(src))
     ctx.tracker.log_figure(fig, "tables/certified_accuracy_vs_radius.png")
     stem = out / "certified_accuracy_vs_radius"
     figure, _ = save(fig, [stem.with_suffix(".png"), stem.with_suffix(".pdf")])
@@ -98,11 +98,11 @@ def write_all(ctx: RunContext, src: ExperimentCells, built: dict, out: Path, pag
     if overview is not None:
         ctx.tracker.log_artifact(overview, "tables")
     if page is not None:
-        table = tables.TABLE3_SEQUENTIAL.build(src, show_paper=True, name="page", paper_arch=PAPER_ARCH)
+        table = paper_tables.TABLE3_SEQUENTIAL.build(src, show_paper=True, name="page", paper_arch=PAPER_ARCH)
         chosen = f" task.experiment={t.experiment}" if t.experiment else ""
         command = launch_command() or f"mrcert task=tables profile={t.profile}{chosen} task.page={t.page}"
-        experiment = src.experiment_for(tables.REPRODUCTION)
-        cells = [c for _, c in src.rows(experiment, tables.SMOOTHED_BENIGN)]
+        experiment = src.experiment_for(paper_tables.REPRODUCTION)
+        cells = [c for _, c in src.rows(experiment, paper_tables.SMOOTHED_BENIGN)]
         views = nearest_views(cells[0].cfg.data, page.with_name(f"{page.stem}_views.png")) if cells else None
         ctx.tracker.log_artifact(write_page(src, experiment, table, figure, page, command, views), "tables")
     ctx.tracker.log_metrics(metrics)
@@ -116,9 +116,9 @@ def report(cfg: DictConfig, src: ExperimentCells, built: dict, out: Path) -> Non
         print(f"\n{built[t.print][1]} (profile {t.profile}):\n")
         print(markdown(as_text(built[t.print][0])))
     else:
-        own = next(table for table in tables.TABLES if table.name == t.print)
+        own = next(table for table in paper_tables.TABLES if table.name == t.print)
         print(f"\n{t.print}: not written: it is about {', '.join(own.data)}, not {src.data_of(own.experiment)}")
-    models = base_models(src, jobs_of(src, src.experiment_for(tables.REPRODUCTION)))
+    models = base_models(src, jobs_of(src, src.experiment_for(paper_tables.REPRODUCTION)))
     if len(models):
         print("\nTheir base classifiers (validation accuracy selected best.pt; test accuracy measured once):\n")
         print(markdown(as_text(models)))
@@ -157,7 +157,7 @@ def method_overview(src: ExperimentCells, path: Path) -> Path | None:
     """The method in one picture (:func:`mrcert.reporting.overview.method_figure`) from the
     first filled certify cell of Table 3's rows (a run of ours: an imported log comes without
     its scene), on its first correctly classified test image; None when no such cell is filled."""
-    for _, cell in src.rows(src.experiment_for(tables.REPRODUCTION), tables.CERTIFIED):
+    for _, cell in src.rows(src.experiment_for(paper_tables.REPRODUCTION), paper_tables.CERTIFIED):
         log = src.index.log(cell) if cell.cfg.task.name == "certify" else None  # an imported log has no scene
         if log is not None and len(log):
             right = log[log["correct"] == 1]
