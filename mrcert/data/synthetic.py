@@ -77,10 +77,6 @@ def _ranges(train: DictConfig) -> dict[str, tuple[float, float]]:
     return {q: tuple(train[f"{q}_range"]) for q in ("yaw", "pitch", "roll", "radius")}
 
 
-def _share(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and 0.0 <= value <= 1.0
-
-
 class SyntheticSource:
     """Scenes and poses of a synthetic dataset described by a ``data`` config."""
 
@@ -95,10 +91,10 @@ class SyntheticSource:
         self.classes: list[str] = sorted(chosen)
         self.settings = self._check_surroundings(data.get("surroundings") or {})
         self.ambient = self._check_ambient(data.get("ambient") or {})
-        law = data.protocol.train.get("pitch_law", "angle")
-        if law not in PITCH_LAWS:
+        self.pitch_law = str(data.protocol.train.get("pitch_law", "angle"))
+        if self.pitch_law not in PITCH_LAWS:
             raise MrcertError(
-                f"data.protocol.train.pitch_law={law!r} is not allowed; allowed: {', '.join(PITCH_LAWS)} "
+                f"data.protocol.train.pitch_law={self.pitch_law!r} is not allowed; allowed: {', '.join(PITCH_LAWS)} "
                 "(uniform in angle, or over the sphere's area)"
             )
         self._parts: dict[str, Cloud] = {}
@@ -226,7 +222,7 @@ class SyntheticSource:
             rule=str(p.separation_rule),
             max_camera_z=self.family.max_camera_z,
             target=self._target(),
-            pitch_law=str(p.train.get("pitch_law", "angle")),
+            pitch_law=self.pitch_law,
         )
 
     def has_split(self, name: str) -> bool:

@@ -23,15 +23,17 @@ from mrcert.infra.identity import RunIdentity
 
 KEY_TAG, CELL_TAG = "mrcert.key", "mrcert.cell"
 FINISHED = "attributes.status = 'FINISHED'"
+NOT_FINISHED = "attributes.status != 'FINISHED'"
 KEY_COLUMN, CELL_COLUMN = f"tags.{KEY_TAG}", f"tags.{CELL_TAG}"
 
 
 def _key_query(tracking: DictConfig, key: str, status: str, task: str | None) -> list:
+    """Runs of run key ``key`` whose status meets ``status`` (a filter clause), newest first."""
     mlflow = configure(tracking)
     exp = mlflow.MlflowClient().get_experiment_by_name(tracking.experiment)
     if exp is None:
         return []
-    where = [f"tags.`{KEY_TAG}` = '{key}'", f"attributes.status {status}"]
+    where = [f"tags.`{KEY_TAG}` = '{key}'", status]
     if task is not None:
         where.append(f"tags.`mrcert.task` = '{task}'")
     return mlflow.search_runs(
@@ -44,13 +46,13 @@ def _key_query(tracking: DictConfig, key: str, status: str, task: str | None) ->
 
 def finished(tracking: DictConfig, key: str, task: str | None = None) -> list:
     """The FINISHED runs whose run key is ``key`` (of task ``task``, when given), newest first."""
-    return _key_query(tracking, key, "= 'FINISHED'", task)
+    return _key_query(tracking, key, FINISHED, task)
 
 
 def interrupted(tracking: DictConfig, key: str) -> list:
     """The runs of run key ``key`` that were interrupted (RUNNING or KILLED; never FAILED, which
     ended on an error), newest first."""
-    runs = _key_query(tracking, key, "!= 'FINISHED'", None)
+    runs = _key_query(tracking, key, NOT_FINISHED, None)
     return [r for r in runs if r.info.status in ("RUNNING", "KILLED")]
 
 

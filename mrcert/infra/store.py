@@ -124,28 +124,38 @@ def schema_head() -> str:
     return _get_latest_schema_revision()
 
 
-def schema_version(db: Path) -> str | None:
-    """The alembic revision stamped in a SQLite store, or None when it has none."""
+@contextlib.contextmanager
+def _opened(db: Path) -> Iterator[sqlite3.Connection]:
+    """``db`` opened for writing, as MLflow opens it (a process killed inside a transaction leaves
+    a journal that SQLite rolls back on opening); a lock another process keeps is the one-line
+    :func:`locked` error, any other SQLite error is raised as it is."""
     try:
         with sqlite3.connect(f"file:{db}?mode=rw", uri=True) as conn:
-            row = conn.execute("SELECT version_num FROM alembic_version").fetchone()
+            yield conn
     except sqlite3.Error as exc:
         if is_locked(exc):
             raise locked(f"sqlite:///{db}") from None
+        raise
+
+
+def schema_version(db: Path) -> str | None:
+    """The alembic revision stamped in a SQLite store, or None when it has none."""
+    try:
+        with _opened(db) as conn:
+            row = conn.execute("SELECT version_num FROM alembic_version").fetchone()
+    except sqlite3.Error:
         return None
     return row[0] if row else None
 
 
 def damage(db: Path) -> str | None:
-    """What SQLite's ``quick_check`` finds wrong in ``db`` (damaged pages), or None. Opened for
-    writing, as MLflow opens it: a process killed inside a transaction leaves a journal that
-    SQLite rolls back on opening (read-only, it could not, and would call the store damaged)."""
+    """What SQLite's ``quick_check`` finds wrong in ``db`` (damaged pages), or None (opened by
+    :func:`_opened`: read-only, SQLite could not roll a killed transaction's journal back, and
+    would call the store damaged)."""
     try:
-        with sqlite3.connect(f"file:{db}?mode=rw", uri=True) as conn:
+        with _opened(db) as conn:
             found = [row[0] for row in conn.execute("PRAGMA quick_check")]
     except sqlite3.Error as exc:
-        if is_locked(exc):
-            raise locked(f"sqlite:///{db}") from None
         return str(exc)
     return None if found == ["ok"] else "; ".join(found[:2])
 
