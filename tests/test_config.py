@@ -178,7 +178,7 @@ def test_evaluation_batches_suit_the_device_unless_given():
         ),
         ("task=certify task.batch_size=big", "task.batch_size", "'big'", "an integer >= 1, or auto"),
         ("task=certify task.batch_size=0", "task.batch_size", "0", "an integer >= 1, or auto"),
-        ("task=certify task.sequential=true task.n=30", "task.look", "50", "an integer in [1, task.n=30]"),
+        ("task=certify task.sequential=true task.n=30", "task.look", "40", "an integer in [1, task.n=30]"),
     ],
 )
 def test_bad_values_are_rejected_with_key_value_and_allowed(override, key, value, allowed):

@@ -223,7 +223,7 @@ def test_certify_with_pixelwise_smoothing_lands_in_mlflow_like_a_motion_run(tmp_
     assert (log.projected == 3).all()  # each frame rendered once, for the bounds and the votes
     # The interval's half-width is in metres, the pixel noise in units of the [0, 1] image.
     assert set(log.radius_unit) == {"m"} and set(log.sigma_unit) == {"intensity"}
-    assert metrics["mean_samples"] == 40
+    assert metrics["mean_samples"] == 8 + 40  # the class guess and the estimation samples
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     runs = mlflow.search_runs(search_all_experiments=True, filter_string="attributes.status = 'FINISHED'")
     certify = runs[runs["tags.mrcert.task"] == "certify"]

@@ -7,27 +7,38 @@ from scipy.stats import binom, norm
 from statsmodels.stats.proportion import proportion_confint
 
 from mrcert.core.camera_motion import CameraMotionSmoothing
-from mrcert.core.sampling import SmoothedClassifier, image_generator
+from mrcert.core.method import ABSTAIN
+from mrcert.core.sampling import SmoothedClassifier, VoteCounter, image_generator
 from mrcert.core.sequential import TOLERANCE, PredictDesign, SequentialDesign, predict_grid
 from tests.test_smoothing import Constant, tiny_sample
 
 
+class SimulatedVotes:
+    """Votes drawn from class probabilities ``p`` (no model, no rendering)."""
+
+    def __init__(self, p, seed: int):
+        self.p, self.num_classes = np.asarray(p, float), len(p)
+        self.rng = np.random.default_rng(seed)
+
+    def __call__(self, render, inputs) -> np.ndarray:
+        return self.rng.multinomial(len(inputs), self.p / self.p.sum())
+
+
 class Simulated(SmoothedClassifier):
-    """The smoothed classifier with its base votes simulated: class 1 with probability ``p``
-    per sample (no rendering), so the real CERTIFY code runs on thousands of streams."""
+    """The smoothed classifier with its base votes simulated -- class 1 with probability ``p``
+    per sample and class 0 otherwise, or the classes of a list ``p`` -- so the real CERTIFY code
+    runs on thousands of streams."""
 
-    def __init__(self, p: float, seed: int, sigma: float = 1.0):
-        super().__init__(None, CameraMotionSmoothing(("tz",), (sigma,)), 2)
-        self.p, self.rng = p, np.random.default_rng(seed)
-
-    def sample_counts(self, render, n, generator, center=None):
-        ones = int((self.rng.random(n) < self.p).sum())
-        return np.array([n - ones, ones])
+    def __init__(self, p, seed: int, sigma: float = 1.0):
+        probs = [1 - p, p] if np.isscalar(p) else list(p)
+        super().__init__(None, CameraMotionSmoothing(("tz",), (sigma,)), len(probs))
+        self.votes = SimulatedVotes(probs, seed)
 
 
 def fixed_power(p: np.ndarray, n: int, alpha: float, need: float) -> np.ndarray:
-    """P(fixed-n CERTIFY certifies): P(Binomial(n, p) >= k) for the smallest count k whose
-    Clopper-Pearson lower bound (statsmodels' exact interval, one-sided) reaches ``need``."""
+    """P(fixed-n CERTIFY certifies) with a right guess: P(Binomial(n, p) >= k) for the smallest
+    count k whose Clopper-Pearson lower bound (statsmodels' exact interval, one-sided) reaches
+    ``need``."""
     counts = np.arange(n + 1)
     lower = proportion_confint(counts, n, alpha=2 * alpha, method="beta")[0]
     k = int(counts[np.nan_to_num(lower) >= need][0])
@@ -35,39 +46,55 @@ def fixed_power(p: np.ndarray, n: int, alpha: float, need: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("ratio", "alpha"), [(0.5, 0.01), (1.0, 0.01), (2.0, 0.01), (1.0, 0.001)])
-def test_sequential_certifies_at_least_as_often_as_fixed_n_at_every_pa(ratio, alpha):
-    """Sequential CERTIFY loses no power against fixed n at any pA (an anytime-valid confidence
-    sequence certifies r = sigma with probability 0.32 at pA = 0.88 where fixed n = 1000 does
-    with 0.87). Exact power on a grid finer than the one the
-    design was planned on; the reference is fixed-n power from statsmodels' interval."""
+def test_sequential_certifies_at_least_as_often_as_fixed_n_and_is_wrong_at_most_alpha(ratio, alpha):
+    """Exact, for votes of two classes, on a grid finer than the one the design was planned on:
+    the top class is certified at least as often as by fixed-n CERTIFY (its guess on n0 = 100
+    votes, at least half of them for the top class, times statsmodels' power), less the
+    tolerance; below the threshold every certificate is wrong, and there are at most alpha of
+    them; and a clear image costs the first look, a 27th of fixed n's 1,100 samples."""
     need = norm.cdf(ratio)
-    design = SequentialDesign.plan(1000, alpha, need, 50)
+    design = SequentialDesign.plan(100, 1000, alpha, need, 40)
     grid = np.linspace(need, 1.0, 1999)[1:]
-    sequential, samples = design.operating(grid)
-    fixed = fixed_power(grid, 1000, alpha, need)
-    assert (sequential >= fixed - 0.01).all(), grid[np.argmin(sequential - fixed)]
-    # The exact probability of a wrong certificate at the threshold (and below it) is <= alpha.
+    top, _, samples = design.operating(grid)
+    fixed = binom.sf(49, 100, grid) * fixed_power(grid, 1000, alpha, need)
+    assert (top >= fixed - 0.01).all(), grid[np.argmin(top - fixed)]
     below = np.linspace(0.5, need, 50)
-    assert (design.operating(below)[0] <= alpha).all()
-    # And it is cheap where most test images are: a confident base classifier.
-    assert design.operating(0.999)[1][0] <= (150 if ratio <= 1 else 600)
+    wrong = sum(design.operating(below)[:2])
+    assert (wrong <= alpha).all() and design.error_bound() <= alpha * (1 + 1e-12)
+    first = design.looks[int(np.flatnonzero(np.array(design.levels) > 0)[0])]  # the first that can certify
+    assert design.operating(1.0)[2][0] == pytest.approx(first) and (first == 40 or (ratio, alpha) != (1.0, 0.01))
     assert samples.max() <= design.n_max
 
 
+def test_certifying_the_class_the_same_votes_pick_needs_the_scaled_levels():
+    """At r = 0 (pA must exceed 1/2) two classes of 1/2 each are the worst case: either one
+    certified is wrong. The planned design's levels are scaled for it and stay within alpha;
+    the same looks with their levels summing to alpha (no scaling) do not."""
+    alpha = 0.01
+    design = SequentialDesign.plan(100, 1000, alpha, 0.5, 40)
+    assert sum(design.operating(0.5)[:2])[0] <= alpha
+    unscaled = SequentialDesign(design.looks, tuple(np.array(design.levels) * alpha / sum(design.levels)), 0.05, 0.5)
+    assert sum(unscaled.operating(0.5)[:2])[0] > alpha
+
+
 def test_the_exact_power_and_cost_agree_with_the_certify_code_on_simulated_streams():
-    """The dynamic programme against Monte Carlo through SmoothedClassifier.certify_sequential."""
-    alpha, radius, streams = 0.01, 1.0, 600
-    design = SequentialDesign.plan(1000, alpha, norm.cdf(radius), 50)
-    for p in (0.86, 0.9, 0.97):
+    """The dynamic programme against Monte Carlo through SmoothedClassifier.certify_sequential:
+    the top class certified, the other one certified (at r = 0, where it can be), the samples."""
+    streams = 600
+    for p, radius, alpha in ((0.86, 1.0, 0.01), (0.9, 1.0, 0.01), (0.97, 1.0, 0.01), (0.5, 0.0, 0.05)):
+        design = SequentialDesign.plan(100, 1000, alpha, max(norm.cdf(radius), 0.5), 40)
         certs = [
-            Simulated(p, seed).certify_sequential(None, 100, 1000, alpha, radius, 50, image_generator(0, seed))
+            Simulated(p, seed).certify_sequential(None, 100, 1000, alpha, radius, 40, image_generator(0, seed))
             for seed in range(streams)
         ]
-        power, cost = design.operating(p)
-        certified = np.mean([c.prediction == 1 and c.radius >= radius for c in certs])
-        assert abs(certified - power[0]) <= 4 * np.sqrt(power[0] * (1 - power[0]) / streams) + 1e-9
+        top, other, cost = (v[0] for v in design.operating(p))
+        for value, share in (
+            (top, np.mean([c.prediction == 1 and c.radius >= radius for c in certs])),
+            (other, np.mean([c.prediction == 0 for c in certs])),
+        ):
+            assert abs(share - value) <= 4 * np.sqrt(value * (1 - value) / streams) + 1e-9
         drawn = np.array([c.n for c in certs], float)
-        assert abs(drawn.mean() - cost[0]) <= 4 * drawn.std() / np.sqrt(streams) + 1e-9
+        assert abs(drawn.mean() - cost) <= 4 * drawn.std() / np.sqrt(streams) + 1e-9
 
 
 def test_fixed_n_certify_matches_its_exact_power():
@@ -84,56 +111,89 @@ def test_fixed_n_certify_matches_its_exact_power():
     assert abs(certified - power) <= 4 * np.sqrt(power * (1 - power) / streams)
 
 
-@pytest.mark.parametrize("p", [norm.cdf(1.0), 0.9, 0.99])
-def test_the_reported_bound_exceeds_the_true_pa_with_probability_at_most_alpha(p):
-    """Monte Carlo type-I error: at the threshold (p = Phi(1)) certifying r = sigma is the
-    error; above it, a reported pA_lower above the true pA is (the radius would be too large).
-    alpha = 0.05 so that the error rate is measurable with 1,500 streams."""
+@pytest.mark.parametrize(
+    ("p", "radius"),
+    [(norm.cdf(1.0), 1.0), (0.9, 1.0), (0.99, 1.0), ((0.5, 0.5), 0.0), ((0.4, 0.3, 0.3), 0.0)],
+)
+def test_the_reported_bound_exceeds_the_certified_class_probability_at_most_alpha(p, radius):
+    """Monte Carlo error rate through the real code: a certificate whose pA_lower exceeds the
+    certified class's true probability is wrong (at the threshold p = Phi(1), any certificate
+    of r = sigma; at r = 0 with no class above 1/2, any certificate at all). alpha = 0.05 so
+    that the error rate is measurable with 1,500 streams."""
     alpha, streams = 0.05, 1500
+    probs = np.array([1 - p, p] if np.isscalar(p) else p)
     certs = [
-        Simulated(p, seed).certify_sequential(None, 100, 1000, alpha, 1.0, 50, image_generator(0, seed))
+        Simulated(p, seed).certify_sequential(None, 100, 1000, alpha, radius, 40, image_generator(0, seed))
         for seed in range(streams)
     ]
-    errors = np.mean([c.prediction == 1 and c.p_a_lower > p for c in certs])
+    errors = np.mean([c.prediction != ABSTAIN and c.p_a_lower > probs[c.prediction] for c in certs])
     assert errors <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / streams)
 
 
 def test_sequential_certificates_stop_at_the_first_look_on_a_sure_image_whatever_the_batch():
     dist = CameraMotionSmoothing(("tz",), (0.1,))
     smoothed, render = SmoothedClassifier(Constant(2), dist, 4, batch_size=64), tiny_sample().renderer()
-    cert = smoothed.certify_sequential(render, 100, 1000, 0.01, 0.1, 50, image_generator(0, 0))
-    design = SequentialDesign.plan(1000, 0.01, norm.cdf(1.0), 50)
-    assert cert.prediction == 2 and cert.count_a == cert.n == design.looks[0] == 50
-    assert cert.p_a_lower == pytest.approx(design.levels[0] ** (1 / 50), rel=1e-12)  # Clopper-Pearson at 50/50
+    cert = smoothed.certify_sequential(render, 100, 1000, 0.01, 0.1, 40, image_generator(0, 0))
+    design = SequentialDesign.plan(100, 1000, 0.01, norm.cdf(1.0), 40)
+    assert cert.prediction == 2 and cert.count_a == cert.n == design.looks[0] == 40
+    assert cert.p_a_lower == pytest.approx(design.levels[0] ** (1 / 40), rel=1e-12)  # Clopper-Pearson at 40/40
     assert cert.radius == pytest.approx(0.1 * norm.ppf(cert.p_a_lower), rel=1e-12) and cert.radius >= 0.1
     # Batch size does not change where it stops or what it returns.
     other = SmoothedClassifier(Constant(2), dist, 4, batch_size=7)
-    assert other.certify_sequential(render, 100, 1000, 0.01, 0.1, 50, image_generator(0, 0)) == cert
+    assert other.certify_sequential(render, 100, 1000, 0.01, 0.1, 40, image_generator(0, 0)) == cert
 
 
 class Noisy(torch.nn.Module):
-    """Votes class 1 with probability 0.6 whatever the image (its own seeded generator)."""
+    """Votes class 1 with probability ``p`` whatever the image (its own seeded generator)."""
 
-    def __init__(self):
+    def __init__(self, p: float = 0.6):
         super().__init__()
-        self.g = torch.Generator().manual_seed(0)
+        self.p, self.g = p, torch.Generator().manual_seed(0)
 
     def forward(self, x):
         out = torch.zeros(len(x), 2)
-        out[torch.arange(len(x)), (torch.rand(len(x), generator=self.g) < 0.6).long()] = 1.0
+        out[torch.arange(len(x)), (torch.rand(len(x), generator=self.g) < self.p).long()] = 1.0
         return out
+
+
+class Recording(VoteCounter):
+    """A vote counter that keeps every input it classifies, in order."""
+
+    def __call__(self, render, inputs):
+        self.seen = [*getattr(self, "seen", []), inputs]
+        return super().__call__(render, inputs)
+
+
+def test_sequential_certify_classifies_the_samples_fixed_n_estimates_with():
+    """The two procedures see the same samples of an image: sequential CERTIFY's stream is fixed
+    n's n = 1,000 estimation samples (its n0 selection samples drawn and skipped), then fresh
+    ones up to the last look."""
+    dist, render = CameraMotionSmoothing(("tz",), (0.1,)), tiny_sample().renderer()
+    streams = {}
+    for name in ("fixed", "sequential"):
+        smoothed = SmoothedClassifier(Noisy(0.86), dist, 2, batch_size=100)
+        smoothed.votes = Recording(smoothed.votes.base, 2, batch_size=100)
+        if name == "fixed":
+            smoothed.certify(render, 100, 1000, 0.01, image_generator(0, 3))
+        else:
+            cert = smoothed.certify_sequential(render, 100, 1000, 0.01, 0.1, 40, image_generator(0, 3))
+        streams[name] = torch.cat(smoothed.votes.seen)
+    fixed, sequential = streams["fixed"], streams["sequential"]
+    assert len(fixed) == 1100 and len(sequential) == cert.n > 1000  # borderline: it reaches the last look
+    assert torch.equal(sequential[:1000], fixed[100:]) and not torch.equal(sequential[:100], fixed[:100])
 
 
 def test_sequential_stops_early_when_the_radius_is_out_of_reach():
     dist = CameraMotionSmoothing(("tz",), (0.1,))
     smoothed = SmoothedClassifier(Noisy(), dist, 2, batch_size=100)
-    cert = smoothed.certify_sequential(tiny_sample().renderer(), 100, 1000, 0.01, 0.1, 50, image_generator(0, 1))
-    assert cert.n <= 100 and cert.radius < 0.1  # pA = 0.6 is far below Phi(1) = 0.84: no need to draw 1,000
+    cert = smoothed.certify_sequential(tiny_sample().renderer(), 100, 1000, 0.01, 0.1, 40, image_generator(0, 1))
+    # pA = 0.6 is far below Phi(1) = 0.84: no need to draw 1,000, and nothing is claimed
+    assert cert.n <= 80 and cert.prediction == ABSTAIN and cert.radius == 0.0
 
 
 def test_a_design_refuses_looks_it_cannot_make():
     with pytest.raises(ValueError, match="first look"):
-        SequentialDesign.plan(100, 0.01, 0.84, 500)
+        SequentialDesign.plan(100, 100, 0.01, 0.84, 500)
 
 
 # --- sequential PREDICT ----------------------------------------------------------------------

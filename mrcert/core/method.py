@@ -79,7 +79,7 @@ class Certificate:
     radius: float
     count_a: int
     p_a_lower: float
-    n: int = 0  # estimation samples drawn (the sequential mode may stop early; several frames add up)
+    n: int = 0  # samples classified after the class guess (sequential CERTIFY has none; several frames add up)
     unit: str = ""  # the radius's unit (the view's for one view, the region's for a method's certify)
     # How far a method's own condition is from holding (pixel-wise smoothing: the smallest, over
     # pieces, of the better end frame's radius less its bound; bound propagation: the smallest
@@ -99,7 +99,7 @@ class CertifyRequest:
     alpha: float
     radius: float
     sequential: bool = False
-    look: int = 50
+    look: int = 40
 
 
 @dataclass

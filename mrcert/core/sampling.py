@@ -252,25 +252,45 @@ class SmoothedClassifier:
         self, render: Render, n0: int, n: int, alpha: float, radius: float, first_look: int, generator: torch.Generator
     ) -> Certificate:
         """CERTIFY with early stopping, for a requested ``radius``, never less powerful than
-        :meth:`certify` with ``n`` samples.
+        :meth:`certify` with ``n0`` and ``n`` samples, and with no separate class guess.
 
-        After ``n0`` selection samples, estimation samples are drawn up to the looks of the
-        :class:`~mrcert.core.sequential.SequentialDesign` planned for ``n``, ``alpha`` and the
-        probability the radius needs (looks at ``first_look``, doubling, and a last look at
-        ``n_max >= n``); it stops at the first look whose count certifies ``radius`` or shows
-        that it cannot be reached, and reports ``radius(pA_lower)`` with that look's bound.
-        With probability at least ``1 - alpha`` every look's bound holds, so the certificate
-        is valid at the data-dependent stop. Looks are fixed in number of samples, so the
-        result does not depend on the batch size.
+        Samples are drawn up to the looks of the
+        :class:`~mrcert.core.sequential.SequentialDesign` planned for ``n0``, ``n``, ``alpha``
+        and the probability the radius needs (looks at ``first_look``, doubling, and a last look
+        at ``n_max >= n``); at each look the class with the most votes is certified once its
+        count certifies ``radius``, and the search stops there, or when no class can reach
+        ``radius`` (then ABSTAIN, radius 0). With probability at least ``1 - alpha`` the
+        reported ``pA_lower`` holds for the class certified, so the certificate is valid at
+        the data-dependent stop. The samples are the ones :meth:`certify` estimates with
+        (its ``n0`` selection samples are drawn from the generator first, and not classified),
+        so the two procedures are compared on the same samples of every image; the looks are
+        fixed in number of samples, so the result does not depend on the batch size.
         """
         need = max(self.method.probability_for(radius), 0.5)
-        design = SequentialDesign.plan(n, alpha, need, first_look)
-        c_a = int(np.argmax(self.sample_counts(render, n0, generator)))
-        count_a, drawn = 0, 0
+        design = SequentialDesign.plan(n0, n, alpha, need, first_look)
+        self.method.views(render, n0, generator, None)  # fixed-n CERTIFY's selection samples
+        segments = [self.method.views(render, n, generator, None)]
+        if design.n_max > n:
+            segments.append(self.method.views(render, design.n_max - n, generator, None))
+        counts, drawn = np.zeros(self.votes.num_classes, np.int64), 0
         for k, look in enumerate(design.looks):
-            count_a += int(self.sample_counts(render, look - drawn, generator)[c_a])
+            counts += self._votes_between(segments, n, drawn, look)
             drawn = look
-            stop, p_a = design.decide(count_a, k)
+            stop, certified, p_a = design.decide(counts, k)
             if stop:
                 break
-        return self._certificate(c_a, count_a, drawn, p_a)
+        if certified is None:
+            return Certificate(ABSTAIN, 0.0, int(counts.max()), p_a, drawn, self.method.view_unit)
+        return Certificate(
+            certified, self.method.radius(p_a), int(counts[certified]), p_a, drawn, self.method.view_unit
+        )
+
+    def _votes_between(self, segments: list, n: int, start: int, end: int) -> np.ndarray:
+        """Votes over samples ``start..end-1`` of the stream: the first ``n`` from the first
+        segment's views, the rest from the second's."""
+        votes = np.zeros(self.votes.num_classes, np.int64)
+        for (render_batch, inputs), offset in zip(segments, (0, n), strict=False):
+            lo, hi = max(start - offset, 0), min(end - offset, len(inputs))
+            if lo < hi:
+                votes += self.votes(render_batch, inputs[lo:hi])
+        return votes

@@ -1,31 +1,39 @@
 """Sequential CERTIFY: a group-sequential test of ``pA >= need`` that is as powerful as fixed-n
-CERTIFY and stops far earlier on clear images.
+CERTIFY and stops far earlier on clear images, with no separate class guess.
 
 CERTIFY at a radius ``r`` decides one question about the top class's probability ``pA``: is
-``pA >= need = Phi(r / sigma)``? Fixed-n CERTIFY draws ``n`` samples and certifies when the
-one-sided Clopper-Pearson lower bound at level ``alpha`` reaches ``need``. A
-:class:`SequentialDesign` checks the count at a few *looks* instead, spaced geometrically
-(``first``, ``2 first``, ``4 first``, ... and a last look at ``n_max``):
+``pA >= need = Phi(r / sigma)``? Fixed-n CERTIFY guesses the top class on ``n0`` samples, draws
+``n`` more and certifies when the one-sided Clopper-Pearson lower bound of the guessed class's
+count at level ``alpha`` reaches ``need``. A :class:`SequentialDesign` checks the votes at a few
+*looks* instead, spaced geometrically (``first``, ``2 first``, ``4 first``, ... and a last look
+at ``n_max``), and needs no guess:
 
-* at look ``k`` (``t_k`` samples) the Clopper-Pearson lower bound at level ``alpha_k`` is the
-  certificate's ``pA_lower``; it certifies ``r`` (and stops) once that bound reaches ``need``.
-  The levels add up to ``alpha`` (a tenth spread over the early looks that can certify at all,
-  the rest at the last look), so by the union bound the reported bound exceeds the true ``pA``
-  with probability at most ``alpha`` whatever the stopping rule: the radius reported at the stop
-  is valid, as for fixed n;
-* it also stops, without certifying ``r``, when the Clopper-Pearson *upper* bound at level
-  ``alpha / 10`` is below ``need`` (futility: the image cannot reach ``r``); this never makes
-  a wrong certificate, and it loses at most ``alpha / 10`` of power per look at any
-  ``pA >= need``;
+* at look ``k`` (``t_k`` samples) it certifies the class with the most votes once their count
+  reaches ``certify_k``, the smallest count whose Clopper-Pearson lower bound at level
+  ``alpha_k`` reaches ``need``; that bound is the certificate's ``pA_lower``. Because
+  ``need >= 1/2``, ``certify_k > t_k / 2``: at most one class can reach it, so guessing and
+  estimating on the same samples costs only a small, exact correction (below);
+* it stops, certifying nothing, when the Clopper-Pearson *upper* bound of the most votes at level
+  :data:`FUTILITY` is below ``need`` (no class can reach ``r``); this never makes a wrong
+  certificate;
+* a wrong certificate at look ``k`` is either the top class's bound above its ``pA``
+  (probability at most ``alpha_k``) or another class reaching ``certify_k``; since no two
+  classes reach it together, that is at most ``P(Binomial(t_k, 1/2) >= certify_k)``
+  (:meth:`SequentialDesign.error_bound`). The levels are scaled so that these terms add up to
+  at most ``alpha``, so by the union bound the reported
+  bound exceeds the certified class's probability with probability at most ``alpha``, whatever
+  the stopping rule: the radius reported at the stop is valid, as for fixed n;
 * ``n_max`` is the smallest sample count ``>= n`` at which, on a grid of ``pA`` above ``need``,
-  the exact probability of certifying ``r`` is at least fixed-n CERTIFY's minus
-  :data:`TOLERANCE` -- the few borderline images draw a little more than ``n`` so that no image
-  is less likely to be certified than under the paper's procedure.
+  the probability of certifying ``r`` is at least fixed-n CERTIFY's minus :data:`TOLERANCE`
+  (fixed n's with a guess that is always right, so the guess's errors only favour fixed n) -- the
+  few borderline images draw a little more than ``n`` so that no image is less likely to be
+  certified than under the paper's procedure.
 
 Every probability here is exact: :meth:`SequentialDesign.operating` runs the distribution of the
-count through the looks (binomial increments, stopped mass removed), for any ``pA``. A fixed-n
-CERTIFY is the design with one look (:meth:`SequentialDesign.fixed`), so both procedures' power
-and cost come from the same function (docs/method.md §7 plots them).
+top class's count through the looks (binomial increments, stopped mass removed), for votes of
+two classes with any ``pA``. A fixed-n CERTIFY is the design with one look
+(:meth:`SequentialDesign.fixed`; times :func:`guessed`, the chance its guess is right), so both
+procedures' power and cost come from the same function (docs/method.md §7 plots them).
 
 (Recomputing a fixed-n bound at *every* look at the full ``alpha`` has no such guarantee: its
 error rate grows with the number of looks; docs/method.md §6.)
@@ -41,14 +49,19 @@ import numpy as np
 from scipy.signal import fftconvolve
 from scipy.stats import beta, binom
 
-EARLY_SHARE = 0.1
-"""Share of ``alpha`` spent on the early looks (the rest goes to the last look)."""
+CERTIFY_EARLY_SHARE = 0.2
+"""Share of ``alpha`` that sequential CERTIFY spends on its early looks (the rest, less the
+correction for other classes, goes to the last look)."""
 
-FUTILITY_SHARE = 0.1
-"""Level of each look's futility bound, as a share of ``alpha``."""
+FUTILITY = 0.05
+"""Level of each look's futility bound (an upper bound on the most votes' probability): it
+makes no wrong certificate, and the power it costs is checked against fixed n's."""
+
+PREDICT_EARLY_SHARE = 0.1
+"""Share of ``alpha`` that sequential PREDICT spends on its early looks (the rest at the last)."""
 
 TOLERANCE = 0.005
-"""How much less likely than fixed-n CERTIFY to certify, at any ``pA``, a design may be."""
+"""How much less likely than the fixed-n procedure (to certify; to answer) a design may be."""
 
 POWER_GRID = 400
 """``pA`` values between ``need`` and 1 at which a design's power is compared with fixed n's."""
@@ -80,11 +93,18 @@ def _first_count(t: int, bound, level: float, need: float) -> int:
     return lo
 
 
+def _certify_count(t: int, level: float, need: float) -> int:
+    """The smallest count of ``t`` votes whose lower bound at ``level`` reaches ``need`` (t + 1:
+    none, or level 0)."""
+    return _first_count(t, lower_confidence_bound, level, need) if level > 0 else t + 1
+
+
 @dataclass(frozen=True)
 class SequentialDesign:
     """Looks ``looks`` (sample counts, increasing), the Clopper-Pearson level of each look's
-    lower bound (``levels``, summing to at most alpha; 0 where the look cannot certify), the
-    level of the futility bound (0: none) and the probability ``need`` that the radius asks."""
+    lower bound (``levels``; 0 where the look cannot certify), the level of the futility bound
+    (0: none) and the probability ``need >= 1/2`` that the radius asks. A planned design makes a
+    wrong certificate with probability at most alpha (:meth:`error_bound`)."""
 
     looks: tuple[int, ...]
     levels: tuple[float, ...]
@@ -93,24 +113,52 @@ class SequentialDesign:
 
     @classmethod
     def fixed(cls, n: int, alpha: float, need: float) -> SequentialDesign:
-        """Fixed-n CERTIFY (Cohen et al.) as a design with one look."""
+        """Fixed-n CERTIFY (Cohen et al.) as a design with one look, its class guessed
+        beforehand (so :meth:`operating` is its power when the guess is right)."""
         return cls((n,), (alpha,), 0.0, need)
 
     @classmethod
     def geometric(cls, first: int, n_max: int, alpha: float, need: float) -> SequentialDesign:
-        """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max`` (:func:`geometric_looks`);
-        a look of t samples can certify only when even t successes out of t clear ``need``."""
-        looks, levels = geometric_looks(
-            first, n_max, alpha, lambda t, level: lower_confidence_bound(t, t, level) >= need
-        )
-        return cls(looks, levels, FUTILITY_SHARE * alpha, need)
+        """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max``. The early looks spend
+        :data:`CERTIFY_EARLY_SHARE` of alpha (at most half of :data:`TOLERANCE`: just above
+        ``need`` either procedure certifies about as often as its last look's level, and that
+        gap must stay within the tolerance), halving from one look to the next: half of it at
+        the first look at which unanimous votes certify at that level, a quarter at the next,
+        ... and the rest at the last early look (a look of twice the samples at half the level
+        certifies unanimous votes whenever its predecessor does). Looks before it cannot
+        certify (level 0). The last look takes the rest of alpha; then every level is scaled by
+        the largest factor (1 when other classes cannot matter) that keeps :meth:`error_bound`
+        at most alpha."""
+        early = []
+        t = first
+        while t < n_max:
+            early.append(t)
+            t *= 2
+        budget = min(CERTIFY_EARLY_SHARE * alpha, TOLERANCE / 2)
+        able = [t for t in early if lower_confidence_bound(t, t, budget / 2) >= need]
+        shares = [budget / 2 ** (i + 1) for i in range(len(able))]
+        if shares:
+            shares[-1] *= 2  # the last early look takes the remainder
+        levels = np.array([0.0] * (len(early) - len(able)) + shares + [alpha - sum(shares)])
+
+        def scaled(factor: float) -> SequentialDesign:
+            return cls((*early, n_max), tuple(float(x) for x in factor * levels), FUTILITY, need)
+
+        lo, hi = 0.0, 1.0  # the largest factor whose design's error bound is at most alpha
+        if scaled(hi).error_bound() <= alpha:
+            return scaled(hi)
+        for _ in range(40):
+            mid = (lo + hi) / 2
+            lo, hi = (mid, hi) if scaled(mid).error_bound() <= alpha else (lo, mid)
+        return scaled(lo)
 
     @classmethod
-    def plan(cls, n: int, alpha: float, need: float, first: int) -> SequentialDesign:
+    def plan(cls, n0: int, n: int, alpha: float, need: float, first: int) -> SequentialDesign:
         """The geometric design whose last look is the smallest ``n_max >= n`` (in steps of
-        ``first / 5``) that certifies at least as often as fixed-n CERTIFY, less
-        :data:`TOLERANCE`, at every ``pA`` of a grid above ``need``."""
-        return _plan(int(n), float(alpha), float(need), int(first))
+        ``first / 5``) that certifies the top class at least as often as fixed-n CERTIFY (its
+        guess on ``n0`` samples included), less :data:`TOLERANCE`, at every ``pA`` of a grid
+        above ``need``, for votes of two classes (:meth:`operating`)."""
+        return _plan(int(n0), int(n), float(alpha), float(need), int(first))
 
     @property
     def n_max(self) -> int:
@@ -124,46 +172,79 @@ class SequentialDesign:
         certify, futile = [], []
         last = len(self.looks) - 1
         for k, (t, level) in enumerate(zip(self.looks, self.levels, strict=True)):
-            certify.append(_first_count(t, lower_confidence_bound, level, self.need) if level > 0 else t + 1)
+            certify.append(_certify_count(t, level, self.need))
             if self.futility > 0 and k < last:
                 futile.append(_first_count(t, upper_confidence_bound, self.futility, self.need) - 1)
             else:
                 futile.append(-1)
         return np.array(certify), np.array(futile)
 
-    def decide(self, count: int, k: int) -> tuple[bool, float]:
-        """After look ``k`` with ``count`` successes: whether to stop, and the lower bound on pA."""
-        certify, futile = self.critical
-        stop = count >= certify[k] or count <= futile[k] or k == len(self.looks) - 1
-        return bool(stop), lower_confidence_bound(count, self.looks[k], self.levels[k])
+    def error_bound(self) -> float:
+        """The probability, at most, of a wrong certificate: a reported ``pA_lower`` above the
+        certified class's probability (at most alpha for a planned design). At look ``k`` let
+        ``f_k = P(Binomial(t_k, 1/2) >= certify_k)``; ``certify_k > t_k / 2``, so no two
+        classes reach it together, and the chance ``g(p)`` that a class of probability ``p``
+        does is convex for ``p <= 1/2``. When the top class has probability at least 1/2, its
+        certificate is wrong with probability at most the look's level, and the other classes
+        (at most 1/2 in all) reach the count with probability at most ``max sum g = f_k``;
+        when no class has 1/2, at most ``2 f_k`` (the most a convex sum reaches over
+        probabilities of at most 1/2: two classes of 1/2), which is no more since ``f_k`` is
+        at most the level (``need >= 1/2``). Summed over the looks (union bound)."""
+        certify = self.critical[0]
+        return float(
+            sum(level + binom.sf(c - 1, t, 0.5) for t, c, level in zip(self.looks, certify, self.levels, strict=True))
+        )
 
-    def operating(self, p: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        """Exact probability of certifying ``need`` and expected number of samples, at each ``pA``
-        in ``p``: the distribution of the count is carried through the looks, each look
-        removing the mass that stops there."""
+    def decide(self, counts: np.ndarray, k: int) -> tuple[bool, int | None, float]:
+        """After look ``k`` with the votes ``counts`` per class: whether to stop, the class
+        certified (None: none), and the lower bound on the top class's probability. The top
+        class is the one with the most votes (ties to the lower index; a tie cannot certify)."""
+        certify, futile = self.critical
+        top = int(np.argmax(counts))
+        count = int(counts[top])
+        certified = count >= certify[k]
+        stop = certified or count <= futile[k] or k == len(self.looks) - 1
+        return bool(stop), top if certified else None, lower_confidence_bound(count, self.looks[k], self.levels[k])
+
+    def operating(self, p: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Exact probabilities of certifying the top class and of certifying the other one, and
+        the expected number of samples, at each ``pA`` in ``p``, for votes of two classes (the
+        top one with probability ``pA``, the other ``1 - pA``; more classes can only lower the
+        chance that one of the others is certified, as in :meth:`error_bound`): the
+        distribution of the top class's count is carried through the looks, each look removing
+        the mass that stops there."""
         p = np.atleast_1d(np.asarray(p, dtype=float))
         certify, futile = self.critical
         alive = np.ones((len(p), 1))  # P(count = s, not stopped yet), s = 0..t
-        certified, samples, previous = np.zeros(len(p)), np.zeros(len(p)), 0
+        top, other, samples, previous = np.zeros(len(p)), np.zeros(len(p)), np.zeros(len(p)), 0
         for k, t in enumerate(self.looks):
             step = binom.pmf(np.arange(t - previous + 1)[None, :], t - previous, p[:, None])
             alive = np.clip(fftconvolve(alive, step, axes=1), 0.0, None)
             counts = np.arange(t + 1)
-            stops = (counts >= certify[k]) | (counts <= futile[k]) | (k == len(self.looks) - 1)
-            certified += alive[:, counts >= certify[k]].sum(1)
+            to_top, to_other = counts >= certify[k], t - counts >= certify[k]
+            stops = to_top | to_other | (np.maximum(counts, t - counts) <= futile[k]) | (k == len(self.looks) - 1)
+            top += alive[:, to_top].sum(1)
+            other += alive[:, to_other].sum(1)
             samples += t * alive[:, stops].sum(1)
             alive = np.where(stops, 0.0, alive)
             previous = t
-        return certified, samples
+        return top, other, samples
+
+
+def guessed(p: np.ndarray, n0: int) -> np.ndarray:
+    """The probability, at most, that fixed-n CERTIFY's ``n0`` selection samples pick the top
+    class when the votes are of two classes (``pA``, ``1 - pA``): at least half of them for it
+    (a tie counted as a right guess)."""
+    return binom.sf(np.ceil(n0 / 2) - 1, n0, p)
 
 
 def geometric_looks(
     first: int, n_max: int, alpha: float, decides: Callable[[int, float], bool]
 ) -> tuple[tuple[int, ...], tuple[float, ...]]:
     """Looks at ``first * 2^k`` below ``n_max`` and at ``n_max``, and their levels:
-    :data:`EARLY_SHARE` of alpha split evenly over the early looks at which unanimous samples
-    ``decides(t, level)`` (a look that cannot gives its share to the others, until none is
-    dropped), the rest at the last look."""
+    :data:`PREDICT_EARLY_SHARE` of alpha split evenly over the early looks at which unanimous
+    samples ``decides(t, level)`` (a look that cannot gives its share to the others, until none
+    is dropped), the rest at the last look."""
     early = []
     t = first
     while t < n_max:
@@ -171,12 +252,12 @@ def geometric_looks(
         t *= 2
     able = list(early)
     while able:
-        share = EARLY_SHARE * alpha / len(able)
+        share = PREDICT_EARLY_SHARE * alpha / len(able)
         kept = [t for t in able if decides(t, share)]
         if kept == able:
             break
         able = kept
-    share = EARLY_SHARE * alpha / len(able) if able else 0.0
+    share = PREDICT_EARLY_SHARE * alpha / len(able) if able else 0.0
     levels = tuple(share if t in able else 0.0 for t in early)
     return (*early, n_max), (*levels, alpha - share * len(able))
 
@@ -191,8 +272,11 @@ def check_plan(n: int, alpha: float, first: int) -> None:
 
 def smallest_last_look(n: int, first: int, design: Callable, matches: Callable):
     """The design ``design(n_max)`` of the smallest last look ``n_max >= n`` (in steps of
-    ``first / 5``, up to ``4 n``) that ``matches``; None when none does."""
-    for n_max in range(n, 4 * n + 1, max(1, first // 5)):
+    ``first / 5``, up to ``4 n``) that ``matches``; None when none does. Every tenth step is
+    tried first; then the steps up to the first of those that matches, in order."""
+    grid = range(n, 4 * n + 1, max(1, first // 5))
+    hit = next((i for i in range(0, len(grid), 10) if matches(design(grid[i]))), None)
+    for n_max in grid[max(0, hit - 9) : hit + 1] if hit is not None else grid[len(grid) - (len(grid) - 1) % 10 :]:
         candidate = design(n_max)
         if matches(candidate):
             return candidate
@@ -205,10 +289,10 @@ def power_grid(need: float) -> np.ndarray:
 
 
 @cache
-def _plan(n: int, alpha: float, need: float, first: int) -> SequentialDesign:
+def _plan(n0: int, n: int, alpha: float, need: float, first: int) -> SequentialDesign:
     check_plan(n, alpha, first)
     grid = power_grid(need)
-    reference = SequentialDesign.fixed(n, alpha, need).operating(grid)[0]
+    reference = guessed(grid, n0) * SequentialDesign.fixed(n, alpha, need).operating(grid)[0]
     design = smallest_last_look(
         n,
         first,
