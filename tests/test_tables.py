@@ -425,6 +425,43 @@ def test_the_pages_time_per_stage_sums_every_run_behind_its_tables(store):
     assert list(page["run time, summed (h)"]) == [f"{h:.2f}" for h in times["run time, summed (h)"]]
 
 
+def test_the_page_puts_the_sequential_attack_beside_fixed_ns_cell_by_cell(store):
+    """With both attacks run on a cell, the page shows each one's smoothed K-perturbed accuracy,
+    the difference in images and the images whose verdict differs, as their logs hold them;
+    the sequential attack's time is a stage of its own, and the profile's hours are summed
+    both ways."""
+    extra = ["task.n=44"]  # runs of their own: the module's other pages keep their cells
+    attack = [*DEMO, "task=attack", "model.variant=vanilla", "task.batch_size=64", *extra]
+    run(store, attack, "attack-fixed-44")
+    run(store, [*attack, "task.sequential=true"], "attack-sequential-44")
+    page = page_of(store, "pseq", extra).decode()
+    logs = {n: read_log(store / "runs" / f"attack-{n}-44" / "attack.tsv", ["idx"]) for n in ("fixed", "sequential")}
+    robust = {n: (log.set_index("idx").smoothed_robust == 1) for n, log in logs.items()}
+    row = page_table(page, "## The attacks with sequential PREDICT").iloc[0]
+    assert (row["Axis"], row["Model"], row["K"], row["images"]) == ("Tz", "Smoothed Vanilla SmallCNN", "5", "2")
+    for name, column in (("fixed", "fixed n"), ("sequential", "sequential")):
+        assert row[column] == f"{robust[name].mean():.3f}"
+    assert int(row["difference (images)"]) == robust["sequential"].sum() - robust["fixed"].sum()
+    assert int(row["images whose verdict differs"]) == (robust["sequential"] != robust["fixed"]).sum()
+    assert row["s per image, sequential"] == f"{logs['sequential'].seconds.mean():.2f}"
+    times = page_table(page, "## Time per stage").set_index("stage")
+    assert times.loc["attack (attack.k=5, task.sequential=true)", "runs"] == "1"
+    assert re.search(r"stages summed: [0-9.]+ h with the fixed-n attacks .* [0-9.]+ h with the sequential ones", page)
+
+
+def test_the_profiles_hours_put_the_sequential_attacks_in_the_fixed_ones_place():
+    times = pd.DataFrame(
+        {
+            "experiment": ["e", "e", "e", "e", "other", "every stage"],
+            "stage": ["train", "attack (attack.k=5)", "certify (task.sequential=true)",
+                      "attack (attack.k=5, task.sequential=true)", "attack (attack.k=5)", ""],
+            "run time, summed (h)": [1.0, 2.0, 0.25, 0.5, 8.0, 11.75],
+        }
+    )  # fmt: skip
+    assert results_page.profile_hours(times, "e") == {"fixed": 3.25, "sequential": 1.75}
+    assert results_page.profile_hours(times.iloc[[0, 1, 2]], "e") is None  # no sequential attack ran
+
+
 def test_findings_count_what_the_logs_hold():
     """The page's findings on hand-made logs whose answers are known: of 4 test images, 0, 1 and 2
     are certified at r (3 has a larger radius but a wrong prediction); the attack ran on 0, 2 and

@@ -16,7 +16,7 @@ import pandas as pd
 
 from mrcert.reporting import certify_log, learning_curve, paper_results, paper_tables, side_by_side
 from mrcert.reporting.cells import Cell, compose_config
-from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
+from mrcert.reporting.experiment_cells import ExperimentCells, Measure, sweep_combos
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.paper_tables import (
     AXIS_NAMES,
@@ -322,8 +322,8 @@ MAKEFILE = Path(__file__).resolve().parents[2] / "Makefile"
 def make_stage(target: str, profile: str) -> list[str]:
     """The mrcert commands that ``make TARGET`` runs, as the Makefile writes them (continued
     lines joined, comments dropped, ``$(MRCERT)`` as ``mrcert``, ``$(PROFILE)`` as
-    ``profile``, ``$(REPRODUCTION)`` as its experiment); the page's last stage, the tables, not
-    among them. Empty without the
+    ``profile``, ``$(REPRODUCTION)`` as its experiment, the default ``ATTACKS``); the page's
+    last stage, the tables, not among them. Empty without the
     Makefile (an installed copy)."""
     if not MAKEFILE.is_file():
         return []
@@ -340,13 +340,75 @@ def make_stage(target: str, profile: str) -> list[str]:
         if not text.endswith("\\"):
             commands.append(current.strip())
             current = ""
-    named = {"$(MRCERT)": "mrcert", "$(PROFILE)": profile, "$(REPRODUCTION)": REPRODUCTION.format(profile=profile)}
+    named = {
+        "$(MRCERT)": "mrcert",
+        "$(PROFILE)": profile,
+        "$(REPRODUCTION)": REPRODUCTION.format(profile=profile),
+        "$(ATTACK_SETTING)": "",  # ATTACKS=fixed, the default
+    }
     shown = []
     for command in commands:
         for variable, value in named.items():
             command = command.replace(variable, value)
-        shown.append(command)
+        shown.append(command.strip())
     return [c for c in shown if c.startswith("mrcert ")]
+
+
+def sequential_attack_section(src: ExperimentCells, experiment: str) -> dict | None:
+    """Per attack cell (axis, model, K) that has both: the smoothed K-perturbed accuracy under
+    fixed-n PREDICT and under sequential PREDICT on the same images and motions, the images
+    whose verdict differs, and each one's seconds per image; None when no sequential attack has
+    run. The sequential runs' time also enters the time table (their own stage)."""
+    rows = []
+    for combo, first in src.rows(experiment, SMOOTHED_BENIGN):
+        cfg = first.cfg
+        for k in dict.fromkeys((int(cfg.attack.k), 100)):
+            logs = {}
+            for name, flag in (("fixed", "false"), ("sequential", "true")):
+                measure = Measure("attack", "smoothed_robust_accuracy", (f"attack.k={k}", f"task.sequential={flag}"))
+                logs[name] = src.index.log(src.cell(experiment, combo, measure))
+            fixed, sequential = logs["fixed"], logs["sequential"]
+            if fixed is None or sequential is None:
+                continue
+            both = fixed.merge(sequential, on="idx", suffixes=("_fixed", "_sequential"))
+            robust = {n: (both[f"smoothed_robust_{n}"] == 1) for n in ("fixed", "sequential")}
+            seconds = {n: float(both[f"seconds_{n}"].mean()) for n in ("fixed", "sequential")}
+            rows.append(
+                {
+                    "Axis": AXIS_NAMES.get(str(cfg.motion.axis), str(cfg.motion.axis)),
+                    "Model": model_label(str(cfg.model.arch), str(cfg.model.variant)),
+                    "K": k,
+                    "images": len(both),
+                    "fixed n": f"{robust['fixed'].mean():.3f}",
+                    "sequential": f"{robust['sequential'].mean():.3f}",
+                    "difference (images)": int(robust["sequential"].sum() - robust["fixed"].sum()),
+                    "images whose verdict differs": int((robust["fixed"] != robust["sequential"]).sum()),
+                    "s per image, fixed n": f"{seconds['fixed']:.2f}",
+                    "s per image, sequential": f"{seconds['sequential']:.2f}",
+                    "time, sequential / fixed": f"{seconds['sequential'] / seconds['fixed']:.2f}",
+                }
+            )
+    if not rows:
+        return None
+    table = pd.DataFrame(rows)
+    return {
+        "table": markdown(table),
+        "cells": len(table),
+        "largest": int(table["difference (images)"].abs().max()),
+        "n": int(first.cfg.task.n),
+    }
+
+
+def profile_hours(times: pd.DataFrame, experiment: str) -> dict | None:
+    """The experiment's stages summed (hours), with its fixed-n attacks and, when sequential
+    attacks ran too, with those in their place; None without sequential attacks."""
+    own = times[times["experiment"] == experiment]
+    attack = own["stage"].str.startswith("attack")
+    sequential = attack & own["stage"].str.contains("task.sequential=true", regex=False)
+    if not sequential.any():
+        return None
+    hours = own["run time, summed (h)"].astype(float)
+    return {"fixed": float(hours[~sequential].sum()), "sequential": float(hours[~(attack & ~sequential)].sum())}
 
 
 def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
@@ -461,6 +523,10 @@ def page_context(
             "picture": plot.name,
         } | curve_summary(models, curve)
     low, high = paper_results.base_benign_range(PAPER_ARCH)
+    attack_section = sequential_attack_section(src, experiment) if filled else None
+    side = side_by_side_section(src, page)
+    paper_profile = paper_profile_section(src)
+    times = stage_times(src) if filled else pd.DataFrame(columns=STAGE_COLUMNS)
     machines = sorted({str(m) for m in src.index.df.get("tags.mrcert.machine", pd.Series(dtype=str)).dropna()})
     codes = sorted({str(c) for c in src.index.df.get("tags.mrcert.code_version", pd.Series(dtype=str)).dropna()})
     return {
@@ -485,9 +551,11 @@ def page_context(
         "models": markdown(as_text(models)) if len(models) else "",
         "views": None if views is None else {"picture": views[0].name, "sentence": views[1]},
         "curve": curve_section,
-        "side": side_by_side_section(src, page),
-        "paper_profile": paper_profile_section(src),
-        "times": shown_times(stage_times(src)) if filled else "",
+        "side": side,
+        "sequential_attack": attack_section,
+        "paper_profile": paper_profile,
+        "times": shown_times(times) if filled else "",
+        "profile_hours": profile_hours(times, experiment) if filled else None,
         "machines": "; ".join(machines) or "unknown",
         "code": ", ".join(f"`{c}`" for c in codes) or "an unrecorded version",
         "sources": f"{page.stem}_sources.csv",
