@@ -23,7 +23,7 @@ from mrcert.infra.identity import RunIdentity
 from mrcert.infra.key_migration import migrate_once
 from mrcert.infra.locks import key_lock
 from mrcert.infra.resumption import log_files_under
-from mrcert.infra.run_store import reusable_run
+from mrcert.infra.run_store import decide
 from mrcert.infra.stages import LiveRuns, resolve
 from mrcert.infra.store import is_locked, locked
 from mrcert.infra.sweeps import fail_parent
@@ -82,11 +82,12 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
         task = TASKS.of(cfg)
         cfg, ident = bind(cfg)
         with key_lock(cfg, ident):  # lookup and creation of this key's run: one job at a time
-            done = reusable_run(cfg, ident) if task.reusable else None
-            if done is not None:
+            decision = decide(cfg, ident, task.reusable)
+            if decision.action == "skip":
+                done = decision.run
                 log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)
                 return dict(done.data.metrics)
-            with task_run(cfg, output_dir, ident) as tracker:
+            with task_run(cfg, output_dir, ident, decision) as tracker:
                 result = task.run(cfg, RunContext(tracker.output_dir, tracker))
     except BaseException:
         fail_parent(cfg)

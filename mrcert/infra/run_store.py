@@ -1,8 +1,10 @@
 """Which run: the one module that asks an MLflow store which of its runs serves a job.
 
+* :func:`decide` -- what a job does about its run key, decided once: skip it (a FINISHED run
+  serves it, with ``skip_finished``), resume an interrupted run of it, or start a new one;
 * :func:`finished` -- the FINISHED runs of a run key, newest first (a job's result, which
-  ``skip_finished`` reuses: :func:`reusable_run`; a model's train run: :func:`newest_train_run`,
-  or :func:`newest_train_run_in` the tables' index);
+  ``skip_finished`` reuses; a model's train run: :func:`newest_train_run`, or
+  :func:`newest_train_run_in` the tables' index);
 * :func:`interrupted` -- a run key's RUNNING or KILLED runs, newest first (what a resumed job
   continues, :mod:`mrcert.infra.resumption`);
 * :func:`finished_table` -- every FINISHED run of an experiment as one table (what the tables
@@ -15,11 +17,15 @@ effect of a look-up.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import Any
+
 import pandas as pd
 from omegaconf import DictConfig
 
 from mrcert.infra.experiment import configure
 from mrcert.infra.identity import RunIdentity
+from mrcert.infra.resumption import resumable
 
 KEY_TAG, CELL_TAG = "mrcert.key", "mrcert.cell"
 FINISHED = "attributes.status = 'FINISHED'"
@@ -56,12 +62,32 @@ def interrupted(tracking: DictConfig, key: str) -> list:
     return [r for r in runs if r.info.status in ("RUNNING", "KILLED")]
 
 
-def reusable_run(cfg: DictConfig, ident: RunIdentity):
-    """A FINISHED run with this run key, when ``skip_finished`` is on (reproductions), else None."""
-    if not (cfg.get("skip_finished") and cfg.tracking.enabled):
-        return None
-    runs = finished(cfg.tracking, ident.key)
-    return runs[0] if runs else None
+@dataclass
+class Decision:
+    """What a job does about its run key: ``"skip"`` (the FINISHED ``run`` serves it),
+    ``"resume"`` (it continues the interrupted ``run``, whose ``lock`` it now holds) or
+    ``"new"``. ``interrupted``: the key's RUNNING or KILLED runs, newest first (those a dead
+    process left RUNNING are closed before the job starts)."""
+
+    action: str
+    run: Any = None
+    lock: Any = None
+    interrupted: list = field(default_factory=list)
+
+
+def decide(cfg: DictConfig, ident: RunIdentity, reusable: bool) -> Decision:
+    """Skip when ``skip_finished`` is on, the task's results can be reused (``reusable``) and a
+    FINISHED run has this run key; else resume the newest interrupted run (``task.resume``; one
+    a live process holds is refused); else new. Untracked jobs are always new."""
+    if not cfg.tracking.enabled:
+        return Decision("new")
+    if reusable and cfg.get("skip_finished"):
+        runs = finished(cfg.tracking, ident.key)
+        if runs:
+            return Decision("skip", runs[0])
+    waiting = interrupted(cfg.tracking, ident.key)
+    run, lock = resumable(cfg, waiting)
+    return Decision("new" if run is None else "resume", run, lock, waiting)
 
 
 def newest_train_run(tracking: DictConfig, key: str) -> str | None:

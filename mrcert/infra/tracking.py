@@ -18,12 +18,13 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
-from mrcert.infra import identity, run_store
+from mrcert.infra import identity
 from mrcert.infra.config import plain
 from mrcert.infra.experiment import configure, ensure_experiment, run_tags
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.locks import run_lock
-from mrcert.infra.resumption import adopt, close_stale, resumable, timed_segment
+from mrcert.infra.resumption import adopt, close_stale, timed_segment
+from mrcert.infra.run_store import Decision
 from mrcert.infra.runtime import code_version, machine
 from mrcert.infra.seals import sealed_files, seals
 from mrcert.infra.store import uninterrupted
@@ -131,14 +132,13 @@ class Tracker:
 
 
 @contextmanager
-def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[Tracker]:
+def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity, decision: Decision) -> Iterator[Tracker]:
     """An MLflow run around one task: params, tags (the run and cell keys, the model used) and
     the resolved config on entry, status FINISHED, FAILED (an error) or KILLED (interrupted)
     on exit; a child of the sweep's parent run in a multirun.
 
-    With ``task.resume=true`` the newest interrupted run (RUNNING or KILLED, and no live
-    process holding it) of the same run key is reopened and the task continues in that run's
-    output directory.
+    ``decision`` (:func:`mrcert.infra.run_store.decide`) says whether it starts a new run or
+    resumes an interrupted one (reopened, the task continuing in that run's output directory).
     """
     from mrcert.infra.config import to_yaml
 
@@ -152,9 +152,8 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity) -> Iterator[
     parent_id = info.get("run_id")
     mlflow = configure(cfg.tracking)
     experiment_id = info.get("experiment_id") or ensure_experiment(cfg.tracking)
-    interrupted = run_store.interrupted(cfg.tracking, ident.key)  # RUNNING or KILLED, newest first
-    previous, lock = resumable(cfg, interrupted)
-    close_stale(interrupted, mlflow.MlflowClient(), previous.info.run_id if previous is not None else None)
+    previous, lock = decision.run, decision.lock
+    close_stale(decision.interrupted, mlflow.MlflowClient(), previous.info.run_id if previous is not None else None)
     if previous is not None:
         resumed = Path(previous.data.tags["mrcert.output_dir"])
         log.info("resuming MLflow run %s from %s", previous.info.run_id, resumed)
