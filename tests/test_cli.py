@@ -124,7 +124,19 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
         ("task=certify,smooth",),
         ("task=attack", "attack.k=5,100"),
         ("task=certify", "task.sequential=true"),
+        ("task=attack", "attack.k=5,100", "task.sequential=true"),
     }
+    # ATTACKS=sequential: the attacks run sequential PREDICT only, and the tables read those runs.
+    sequential = make_recipe("reproduce-tables", f"PROFILE={profile}", "ATTACKS=sequential")
+    attacks = [c for c in sequential if "task=attack" in c and f"experiment={reproduction}" in c]
+    assert all("++per_task.attack.sequential=true" in c or "task.sequential=true" in c for c in attacks)
+    (page,) = [c for c in sequential if "task=tables" in c]
+    assert "task.overrides=[++per_task.attack.sequential=true]" in page
+    misspelt = ["make", "-n", "reproduce-tables", "ATTACKS=sequntial"]
+    wrong = subprocess.run(misspelt, cwd=ROOT, capture_output=True, text=True)
+    assert wrong.returncode != 0 and "ATTACKS=sequntial is not allowed: fixed or sequential" in wrong.stderr
+    cfg = compose_cfg([f"experiment={reproduction}", "task=attack", "++per_task.attack.sequential=true"])
+    assert cfg.task.sequential and not compose_cfg([f"experiment={reproduction}", "task=attack"]).task.sequential
     cfgs = [compose_cfg([f"experiment={reproduction}", "task=train", *combo]) for combo in sweep_combos(reproduction)]
     assert {c.model.arch for c in cfgs} == archs and {c.profile.name for c in cfgs} == {profile}
     assert {c.data.name for c in cfgs} == {"metaroom_synth"} and {str(c.attack.k) for c in cfgs} == {"5"}
