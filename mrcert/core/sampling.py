@@ -279,11 +279,9 @@ class SmoothedClassifier:
             stop, certified, p_a = design.decide(counts, k)
             if stop:
                 break
-        if certified is None:
+        if certified is None:  # no claim, even where the bound is above 1/2
             return Certificate(ABSTAIN, 0.0, int(counts.max()), p_a, drawn, self.method.view_unit)
-        return Certificate(
-            certified, self.method.radius(p_a), int(counts[certified]), p_a, drawn, self.method.view_unit
-        )
+        return self._certificate(certified, int(counts[certified]), drawn, p_a)
 
     def _votes_between(self, segments: list, n: int, start: int, end: int) -> np.ndarray:
         """Votes over samples ``start..end-1`` of the stream: the first ``n`` from the first

@@ -25,7 +25,7 @@ at ``n_max``), and needs no guess:
   the stopping rule: the radius reported at the stop is valid, as for fixed n;
 * ``n_max`` is the smallest sample count ``>= n`` at which, on a grid of ``pA`` above ``need``,
   the probability of certifying ``r`` is at least fixed-n CERTIFY's minus :data:`TOLERANCE`
-  (fixed n's with a guess that is always right, so the guess's errors only favour fixed n) -- the
+  (fixed n's with its guess on ``n0`` samples, :func:`guessed`, for votes of two classes) -- the
   few borderline images draw a little more than ``n`` so that no image is less likely to be
   certified than under the paper's procedure.
 
@@ -93,6 +93,15 @@ def _first_count(t: int, bound, level: float, need: float) -> int:
     return lo
 
 
+def _early_looks(first: int, n_max: int) -> list[int]:
+    """The looks before the last: ``first * 2^k`` below ``n_max``."""
+    looks, t = [], first
+    while t < n_max:
+        looks.append(t)
+        t *= 2
+    return looks
+
+
 def _certify_count(t: int, level: float, need: float) -> int:
     """The smallest count of ``t`` votes whose lower bound at ``level`` reaches ``need`` (t + 1:
     none, or level 0)."""
@@ -129,11 +138,7 @@ class SequentialDesign:
         certify (level 0). The last look takes the rest of alpha; then every level is scaled by
         the largest factor (1 when other classes cannot matter) that keeps :meth:`error_bound`
         at most alpha."""
-        early = []
-        t = first
-        while t < n_max:
-            early.append(t)
-            t *= 2
+        early = _early_looks(first, n_max)
         budget = min(CERTIFY_EARLY_SHARE * alpha, TOLERANCE / 2)
         able = [t for t in early if lower_confidence_bound(t, t, budget / 2) >= need]
         shares = [budget / 2 ** (i + 1) for i in range(len(able))]
@@ -245,11 +250,7 @@ def geometric_looks(
     :data:`PREDICT_EARLY_SHARE` of alpha split evenly over the early looks at which unanimous
     samples ``decides(t, level)`` (a look that cannot gives its share to the others, until none
     is dropped), the rest at the last look."""
-    early = []
-    t = first
-    while t < n_max:
-        early.append(t)
-        t *= 2
+    early = _early_looks(first, n_max)
     able = list(early)
     while able:
         share = PREDICT_EARLY_SHARE * alpha / len(able)
@@ -276,7 +277,8 @@ def smallest_last_look(n: int, first: int, design: Callable, matches: Callable):
     tried first; then the steps up to the first of those that matches, in order."""
     grid = range(n, 4 * n + 1, max(1, first // 5))
     hit = next((i for i in range(0, len(grid), 10) if matches(design(grid[i]))), None)
-    for n_max in grid[max(0, hit - 9) : hit + 1] if hit is not None else grid[len(grid) - (len(grid) - 1) % 10 :]:
+    last_tried = (len(grid) - 1) // 10 * 10
+    for n_max in grid[max(0, hit - 9) : hit + 1] if hit is not None else grid[last_tried + 1 :]:
         candidate = design(n_max)
         if matches(candidate):
             return candidate

@@ -363,13 +363,18 @@ def sequential_attack_section(src: ExperimentCells, experiment: str) -> dict | N
     for combo, first in src.rows(experiment, SMOOTHED_BENIGN):
         cfg = first.cfg
         for k in dict.fromkeys((int(cfg.attack.k), 100)):
-            logs = {}
-            for name, flag in (("fixed", "false"), ("sequential", "true")):
-                measure = Measure("attack", "smoothed_robust_accuracy", (f"attack.k={k}", f"task.sequential={flag}"))
-                logs[name] = src.index.log(src.cell(experiment, combo, measure))
-            fixed, sequential = logs["fixed"], logs["sequential"]
+            cells = {
+                name: src.cell(
+                    experiment,
+                    combo,
+                    Measure("attack", "smoothed_robust_accuracy", (f"attack.k={k}", f"task.sequential={flag}")),
+                )
+                for name, flag in (("fixed", "false"), ("sequential", "true"))
+            }
+            fixed, sequential = (src.index.log(cells[name]) for name in ("fixed", "sequential"))
             if fixed is None or sequential is None:
                 continue
+            n = int(cells["fixed"].cfg.task.n)  # the paper's attack: PREDICT with n samples per pose
             both = fixed.merge(sequential, on="idx", suffixes=("_fixed", "_sequential"))
             robust = {n: (both[f"smoothed_robust_{n}"] == 1) for n in ("fixed", "sequential")}
             seconds = {n: float(both[f"seconds_{n}"].mean()) for n in ("fixed", "sequential")}
@@ -395,7 +400,7 @@ def sequential_attack_section(src: ExperimentCells, experiment: str) -> dict | N
         "table": markdown(table),
         "cells": len(table),
         "largest": int(table["difference (images)"].abs().max()),
-        "n": int(first.cfg.task.n),
+        "n": n,
     }
 
 
