@@ -42,7 +42,7 @@ figures: $(STAMP) ## the README's pictures from a fresh demo store: the method o
 	rm -rf $(FIGURES)
 	MRCERT_OUTPUTS=$(abspath $(FIGURES)) $(MAKE) --no-print-directory demo
 	cp $(FIGURES)/tables/method_overview.png docs/method_overview.png
-	$(PY) -m mrcert.reporting.screenshot $(FIGURES) docs/mlflow_runs.png
+	MRCERT_OUTPUTS=$(abspath $(FIGURES)) $(MRCERT) task=ui task.port=5077 task.screenshot=$(abspath docs/mlflow_runs.png)
 
 # The reproduction's experiment (conf/experiment/reproduce_<profile>.yaml) and its evidence page.
 REPRODUCTION = reproduce_$(PROFILE)
@@ -97,10 +97,7 @@ bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run 
 	$(PY) benchmarks/sequential.py
 
 ui: $(STAMP) ## MLflow UI on the project's store, opened on the experiment's runs (PORT=... to change)
-	@$(PY) -c 'from mrcert.infra.experiment import ui_link_for; print("MLflow UI:", ui_link_for("$(abspath $(OUTPUTS))", "http://127.0.0.1:$(PORT)"))'
-	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow.db \
-	  --default-artifact-root $(abspath $(OUTPUTS))/mlartifacts --artifacts-destination $(abspath $(OUTPUTS))/mlartifacts \
-	  --host 127.0.0.1 --port $(PORT)
+	MRCERT_OUTPUTS=$(abspath $(OUTPUTS)) $(MRCERT) task=ui task.port=$(PORT)
 
 server: $(STAMP) ## MLflow tracking server on a local SQLite database (for tracking=server)
 	$(VENV)/bin/mlflow server --backend-store-uri sqlite:///$(abspath $(OUTPUTS))/mlflow-server.db \

@@ -53,7 +53,7 @@ def run(args, arch: str) -> None:
     import torch
     from hydra import compose, initialize_config_dir
 
-    from mrcert.core.camera_motion import CameraMotionSmoothing
+    from mrcert.core.methods.camera_motion import CameraMotionSmoothing
     from mrcert.core.models import build_model, for_inference
     from mrcert.core.sampling import SmoothedClassifier, image_generator
     from mrcert.data.sources import load
@@ -139,7 +139,7 @@ def run(args, arch: str) -> None:
     overhead = total - built - render - model_t
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{args.threads} CPU threads"
     print(
-        f"{arch}, {args.axis} (sigma {dist.sigmas[0]}), {args.profile} MetaRoom sample: "
+        f"{arch}, {args.axis} (sigma {dist.noise_scales[0]}), {args.profile} MetaRoom sample: "
         f"{len(sample.points):,} points, {len(sample.crop_points):,} after the crop; "
         f"n0 + n = 1100, batch {batch} (rendered {chunk} at once), {where}"
         f"{', overlapped rendering' if overlap else ''}, projection back end {args.backend}, median of {args.repeats}"

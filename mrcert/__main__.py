@@ -22,9 +22,9 @@ from mrcert.infra.checkpoints import check_classes, local_checkpoint, read_check
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.key_migration import migrate_once
 from mrcert.infra.locks import key_lock
+from mrcert.infra.resolver import LiveRuns, resolve
 from mrcert.infra.resumption import log_files_under
 from mrcert.infra.run_store import decide
-from mrcert.infra.stages import LiveRuns, resolve
 from mrcert.infra.store import is_locked, locked
 from mrcert.infra.sweeps import fail_parent
 from mrcert.infra.tasks import TASKS
@@ -80,6 +80,8 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     try:
         mrcert_config.validate(cfg)
         task = TASKS.of(cfg)
+        if not task.tracked:
+            return task.run(cfg, None)
         cfg, ident = bind(cfg)
         with key_lock(cfg, ident):  # lookup and creation of this key's run: one job at a time
             decision = decide(cfg, ident, task.reusable)
@@ -120,7 +122,10 @@ def _user_error(exc: BaseException, store: str = "") -> str | None:
 def _hydra_main(cfg: DictConfig) -> dict[str, Any]:
     hc = HydraConfig.get()
     try:
-        return run_task(cfg, Path(hc.runtime.output_dir))
+        result = run_task(cfg, Path(hc.runtime.output_dir))
+        if not TASKS.of(cfg).tracked:
+            discard_launch(Path(hc.runtime.output_dir))  # it made no run: its launch leaves no folder
+        return result
     except Exception as exc:
         message = _user_error(exc, str(cfg.tracking.uri))
         if message is None or hc.mode == RunMode.MULTIRUN:
@@ -131,8 +136,9 @@ def _hydra_main(cfg: DictConfig) -> dict[str, Any]:
 
 
 def discard_launch(folder: Path) -> None:
-    """Remove the folder Hydra made for a launch that was refused before any run existed in it
-    (only its ``.hydra`` record and log are there), so a refusal leaves nothing behind."""
+    """Remove the folder Hydra made for a launch that made no run in it (refused before any run
+    existed, or a task outside MLflow runs: only its ``.hydra`` record and log are there), so
+    that such a launch leaves nothing behind."""
     if not folder.is_dir() or any(p.name != ".hydra" and p.suffix != ".log" for p in folder.iterdir()):
         return  # a run was created here (resolved_config.yaml, results): keep everything
     for h in log_files_under(folder):

@@ -11,10 +11,10 @@ import torch
 from hydra import compose, initialize_config_dir
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-from omegaconf import OmegaConf, open_dict
+from omegaconf import OmegaConf, ValidationError
 
 from mrcert.__main__ import _user_error, check_writable
-from mrcert.core.geometry import AXES
+from mrcert.core.axes import AXES
 from mrcert.data.custom import read_poses
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.config import CONF_DIR, validate
@@ -130,11 +130,18 @@ def motion_in_scale(motion) -> bool:
 @given(changes=st.dictionaries(st.sampled_from(KEYS), VALUES, min_size=1, max_size=4))
 @example(changes={"task.shard": 1, "device": None})  # a bad shard is reported before a bad device
 def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, changes):
-    cfg = OmegaConf.create(OmegaConf.to_container(base_cfg))
-    with open_dict(cfg):
-        for key, value in changes.items():
-            OmegaConf.update(cfg, key, value, force_add=True)
-    bad = {k for k, v in changes.items() if v == "???" or not ALLOWED[k](v)}
+    """Each value is refused by its type as the config is composed (a value its schema's type
+    cannot hold), or else by validation exactly when it is not allowed."""
+    cfg = base_cfg.copy()
+    for key, value in changes.items():
+        try:
+            OmegaConf.update(cfg, key, value, merge=False)
+        except ValidationError as exc:  # what composing the config with key=value refuses
+            assert exc.full_key == key and not ALLOWED[key](value)
+            return
+    stored = {k: v if v == "???" else OmegaConf.select(cfg, k) for k, v in changes.items()}  # as the schema holds it
+    stored = {k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v for k, v in stored.items()}
+    bad = {k for k, v in stored.items() if v == "???" or not ALLOWED[k](v)}
     shards = changes.get("task.num_shards", 1)
     both_valid = "task.shard" in changes and not {"task.shard", "task.num_shards"} & bad
     if both_valid and changes["task.shard"] >= shards:

@@ -3,6 +3,7 @@
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -10,7 +11,8 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from tests.conftest import TINY, run_cli
+from mrcert.reporting.screenshot import BROWSERS
+from tests.conftest import TINY, compose_cfg, run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = ["task=render", "data=testscene", "data.density=0.03", "task.num=2", "task.axes=[tx,rz]"]
@@ -106,7 +108,6 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
     beside it, and the tables and evidence page built from exactly those runs."""
     from mrcert.reporting import paper_tables
     from mrcert.reporting.experiment_cells import sweep_combos
-    from tests.conftest import compose_cfg
 
     recipe = make_recipe("reproduce-tables", f"PROFILE={profile}")
     experiments = {a.split("=", 1)[1] for c in recipe for a in c if a.startswith("experiment=")}
@@ -154,7 +155,7 @@ def test_make_reproduce_tables_runs_one_experiment_per_profile_that_fills_every_
 def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs(tmp_path):
     """Every step of make demo, its tables included, runs as a sweep: a parent and its jobs. The
     demo's own recipe, on a tiny scene, and the runs page's view names metrics the runs log."""
-    from mrcert.infra.experiment import experiment_tags, runs_view_metrics, ui_link_for
+    from mrcert.infra.experiment import experiment_tags, runs_view_metrics, ui_link
 
     recipe = make_recipe("demo")
     assert [c for c in recipe if "task=tables" in c], recipe
@@ -176,7 +177,7 @@ def test_after_the_demo_every_run_is_a_sweep_parent_with_jobs_or_one_of_its_jobs
     (group,) = json.loads(experiment_tags()["mlflow.sharedViewState.mrcert"])["groupBy"]["groupByKeys"]
     assert group["mode"] == "tag"
     assert {r.info.run_id for r in all_runs if group["groupByData"] not in r.data.tags} == parents
-    assert ui_link_for(str(tmp_path), "http://127.0.0.1:5000").endswith(
+    assert ui_link(compose_cfg(["task=ui"], tmp_path).tracking, "http://127.0.0.1:5000").endswith(
         "/runs?workflowType=machine_learning&viewStateShareKey=mrcert"
     )
 
@@ -201,15 +202,49 @@ def test_bad_value_stops_with_a_clear_message_and_no_traceback(tmp_path):
 
 def test_help_lists_the_tasks(tmp_path):
     out = mrcert(["--help"], tmp_path).stdout
-    listed = "task: attack, certify, export, gather, import, render, smooth, tables, train, verify, viewpoints"
+    listed = "task: attack, certify, export, gather, import, render, smooth, tables, train, ui, verify, viewpoints"
     assert "Tasks:" in out and listed in out
     tasks = out.split("Tasks:")[1]
-    for name in ("render", "train", "certify", "smooth", "attack", "tables", "import", "gather", "verify", "export"):
+    for name in (
+        "render",
+        "train",
+        "certify",
+        "smooth",
+        "attack",
+        "tables",
+        "import",
+        "gather",
+        "verify",
+        "export",
+        "ui",
+    ):
         assert f"\n  {name} " in tasks
     groups = out.split("== Config groups ==")[1].split("== Config ==")[0]  # only what a user picks
     assert "model: resnet18, resnet50, small_cnn" in groups and not any(
         g in groups for g in ("schema/", "/evaluation", "/camera")
     )
+
+
+def test_the_ui_task_refuses_a_tracking_server_and_leaves_no_run_or_folder(tmp_path):
+    proc = mrcert(["task=ui", "tracking=server"], tmp_path, check=False)
+    assert proc.returncode == 2 and "task=ui serves a SQLite store" in proc.stderr
+    assert not any(p.is_file() for p in tmp_path.rglob("*"))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not any(map(shutil.which, BROWSERS)), reason="no headless browser (Debian: apt-get install chromium)"
+)
+def test_the_ui_task_pictures_the_runs_page_and_adds_no_run(tmp_path):
+    """``make figures``' picture: the UI served on the store, a PNG of its runs page, the UI
+    stopped, and the store as it was (no run, no launch folder)."""
+    mrcert([*FAST], tmp_path)
+    before = {r.info.run_id for r in runs(tmp_path)}
+    png = tmp_path / "runs.png"
+    mrcert(["task=ui", "task.port=5093", f"task.screenshot={png}"], tmp_path)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    assert {r.info.run_id for r in runs(tmp_path)} == before
+    assert not any(p.is_file() for p in (tmp_path / "runs" / "ui").rglob("*"))
 
 
 def test_tracking_off_still_writes_outputs(tmp_path):

@@ -1,5 +1,6 @@
 """Every option of every config group composes and validates; bad values are named."""
 
+import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -7,7 +8,7 @@ import pytest
 import torch
 import yaml
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, ValidationError
 
 from mrcert.errors import ConfigError
 from mrcert.infra.config import CONF_DIR, plain, validate
@@ -179,6 +180,14 @@ def test_evaluation_batches_suit_the_device_unless_given():
         ("task=certify task.batch_size=big", "task.batch_size", "'big'", "an integer >= 1, or auto"),
         ("task=certify task.batch_size=0", "task.batch_size", "0", "an integer >= 1, or auto"),
         ("task=certify task.sequential=true task.n=30", "task.look", "40", "an integer in [1, task.n=30]"),
+        # Values of nodes whose shape is not a structured config's, checked by a schema all the same.
+        ("data.protocol.train.per_class=0", "data.protocol.train.per_class", "0", "an integer >= 1"),
+        ("data.protocol.train.yaw_range=[2,1]", "data.protocol.train.yaw_range", "[2, 1]", "low <= high"),
+        ("data.protocol.separation.yaw=-1", "data.protocol.separation.yaw", "-1", "a finite number >= 0"),
+        ("data.protocol.separation_rule=some", "data.protocol.separation_rule", "'some'", "every or any"),
+        ("+per_task.attack.skip=0", "per_task.attack.skip", "0", "an integer >= 1"),
+        ("model.trained_for={name:pixelwise,sigma:0}", "model.trained_for.sigma", "0", "a finite number > 0"),
+        ("model=small_cnn model.net.width=0", "model.net.width", "0", "an integer >= 1"),
     ],
 )
 def test_bad_values_are_rejected_with_key_value_and_allowed(override, key, value, allowed):
@@ -187,6 +196,55 @@ def test_bad_values_are_rejected_with_key_value_and_allowed(override, key, value
         validate(cfg)
     message = str(info.value)
     assert f"{key}={value}" in message and allowed in message
+
+
+CHECKED_COMPOSITIONS = [
+    *([f"task={t}", *REQUIRED.get(("task", t), [])] for t in options("task")),
+    *([f"data={d}", *REQUIRED.get(("data", d), [])] for d in options("data")),
+    ["motion=txyz_rz"],
+    ["method=pixelwise"],
+    ["method=bound_propagation"],
+]
+CANDIDATES = [-1, 0, 1, 0.5, 1.5, 2.0, 2**40, -0.5, float("inf"), "x", None, [], [1.0, 0.0], ["x"]]
+
+
+def test_every_check_a_schema_declares_refuses_a_bad_value_naming_its_key():
+    """Each checked field of every schema a config composes is checked on it: a value its type
+    holds but its check refuses (taken from a fixed list) fails validation, naming that key."""
+    from mrcert.core.checks import field_checks
+    from mrcert.infra.config import structured_nodes
+    from mrcert.infra.schema import SCHEMAS
+
+    def with_nested(schema):
+        yield schema
+        for f in dataclasses.fields(schema):
+            if dataclasses.is_dataclass(f.default_factory):
+                yield from with_nested(f.default_factory)
+
+    every = {s for group in SCHEMAS.values() for schema in group.values() for s in with_nested(schema)}
+    declared = {(schema.__name__, name) for schema in every for name, _ in field_checks(schema)}
+    tried = set()
+    for overrides in CHECKED_COMPOSITIONS:
+        cfg = compose_cfg(overrides)
+        for schema, where in (n for group in cfg if group != "hydra" for n in structured_nodes(cfg, group)):
+            for name, check in ((n, c) for n, c in field_checks(schema) if (schema.__name__, n) not in tried):
+                for value in (v for v in CANDIDATES if not check.holds(v)):
+                    bad = cfg.copy()
+                    try:
+                        OmegaConf.update(bad, f"{where}.{name}", value, merge=False)
+                    except ValidationError:
+                        continue  # its type cannot hold it: refused at composition
+                    if OmegaConf.select(bad, f"{where}.{name}") != value:
+                        continue  # converted to a value of its type
+                    with pytest.raises(ConfigError) as info:
+                        validate(bad)
+                    # That key, or one whose value is that key's (an interpolation) and is checked first.
+                    named = info.value.key == f"{where}.{name}" or info.value.value == value
+                    assert named, (value, str(info.value))
+                    tried.add((schema.__name__, name))
+                    break
+    assert declared - tried == set()
+    assert len(tried) > 60
 
 
 EXPERIMENT_TASKS = {
@@ -212,7 +270,7 @@ def test_every_experiment_dry_runs_and_evaluates_only_models_the_experiments_tra
     every model an evaluation job looks up is one that a train job of the experiments makes.
     The fast run takes each experiment's first, second and last job; ``slow`` takes all."""
     from mrcert.infra.identity import identify
-    from mrcert.infra.stages import train_key
+    from mrcert.infra.resolver import train_key
     from mrcert.infra.tasks import TASKS
     from mrcert.reporting.experiment_cells import sweep_combos
 

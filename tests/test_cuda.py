@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from mrcert.core.camera_motion import CameraMotionSmoothing
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.projection import locality_order, project
 from mrcert.core.sampling import SmoothedClassifier, image_generator
 from tests.conftest import PAPER_K, random_cloud, random_motions
@@ -122,7 +122,7 @@ def test_a_sample_moved_to_the_gpu_renders_motions_beyond_its_crop_exactly():
 def test_pixel_noise_around_a_gpu_image_is_the_cpu_noise_bit_for_bit():
     """Pixel-wise smoothing votes over noisy copies of a frame rendered where the model runs: on
     a GPU the copies are the CPU's (the noise is drawn on the CPU from the seed and moved)."""
-    from mrcert.core.pixelwise import PixelNoise
+    from mrcert.core.methods.pixelwise import PixelNoise
 
     image = torch.rand(3, 90, 160, generator=torch.Generator().manual_seed(0))
     noise = PixelNoise(0.5)

@@ -14,10 +14,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from PIL import Image
 
-from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.crop import CropBound
 from mrcert.core.generator import GENERATOR_VERSION
 from mrcert.core.geometry import matrix_to_motion
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.projection import camera_points
 from mrcert.data.datasets import DataBundle, render_poses
 from mrcert.data.protocols import look_at_poses

@@ -37,7 +37,7 @@ from tests.conftest import (
 
 def test_a_certificate_counts_the_camera_poses_it_projected(reference):
     """Motion smoothing renders each of its n0 + n samples once: the cost a table reports."""
-    from mrcert.core.geometry import unit
+    from mrcert.core.axes import unit
 
     for rows in reference.values():
         assert (rows.projected == 8 + 200).all()

@@ -92,6 +92,8 @@ def defines_the_result(task: str, cfg: dict, key: str) -> bool:
         return False  # camera motion smoothing's parameters are all in motion.* (its name says which method)
     if task in ("import", "gather"):
         return under("task")
+    if task == "ui":  # no run and no result: serving the store depends on nothing a key holds
+        return key == "task.name"
     if task == "verify":  # its instances and how it verifies them; not where it also writes answers
         return under("task") and not under("task.page", "task.result")
     if task == "tables":

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 from mrcert.__main__ import run_task
 from mrcert.infra.identity import KEY_SCHEME
 from mrcert.infra.key_migration import migrate, migrate_once
-from mrcert.infra.stages import resolve
+from mrcert.infra.resolver import resolve
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
 from tests.conftest import TINY, compose_cfg
@@ -152,7 +152,7 @@ class Store:
 
 
 def test_an_evaluations_key_depends_on_its_models_content_not_on_its_run_id():
-    from mrcert.infra.stages import train_key
+    from mrcert.infra.resolver import train_key
 
     cfg = compose_cfg(CELLS[0])
     key = train_key(cfg)

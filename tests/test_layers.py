@@ -126,7 +126,7 @@ def test_every_task_is_a_class_that_runs_and_summarises_its_log():
     from mrcert.infra.tasks import TASKS, Task
 
     names = sorted(p.stem for p in (ROOT.parent / "conf" / "task").glob("*.yaml"))
-    assert sorted(TASKS) == names and len(names) == 11
+    assert sorted(TASKS) == names and len(names) == 12
     for name, task in TASKS.items():
         assert isinstance(task, Task) and type(task).run is not Task.run, name
         assert (type(task).summarize is not Task.summarize) == (task.log is not None), name

@@ -11,8 +11,9 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from mrcert.core.camera_motion import CameraMotionSmoothing
-from mrcert.core.geometry import axis_index, compose
+from mrcert.core.axes import axis_index
+from mrcert.core.geometry import compose
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.config import validate
 from tests.conftest import compose_cfg

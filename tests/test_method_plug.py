@@ -10,8 +10,9 @@ import importlib
 import pytest
 import yaml
 
-from mrcert.core import method_schemas, methods
-from mrcert.core.method import Method
+from mrcert.core import methods
+from mrcert.core.methods import schemas as method_schemas
+from mrcert.core.methods.base import Method
 from mrcert.infra.config import CONF_DIR, plain
 from mrcert.infra.identity import identify
 from mrcert.infra.schema import SCHEMAS
@@ -51,7 +52,7 @@ def test_no_method_is_named_like_a_config_group():
 def test_the_check_finds_a_method_named_in_each_way():
     assert _naming('if cfg.method.name == "camera_motion":\n    pass')
     assert _naming('RULE = ("method.name", "camera_motion")')
-    assert _naming("from mrcert.core.camera_motion import CameraMotionSmoothing")
+    assert _naming("from mrcert.core.methods.camera_motion import CameraMotionSmoothing")
     assert not _naming('if "motion" in ignored:\n    words.remove(str(cfg.method.name))')
 
 
@@ -72,7 +73,7 @@ def test_each_method_lives_in_the_four_places_the_docs_list(name):
     cls = getattr(importlib.import_module(module), cls_name)
     # 1. its own module of mrcert/core/, a subclass of Method
     assert issubclass(cls, Method) and module.startswith("mrcert.core.") and cls.__module__ == module
-    # 2. one line of METHODS (this entry); 3. its schema in mrcert/core/method_schemas.py,
+    # 2. one line of METHODS (this entry); 3. its schema in mrcert/core/methods/schemas.py,
     # registered under its name
     assert dataclasses.is_dataclass(entry.schema) and entry.schema.__module__ == method_schemas.__name__
     assert SCHEMAS["method"][name] is entry.schema
@@ -81,7 +82,12 @@ def test_each_method_lives_in_the_four_places_the_docs_list(name):
     assert spec["name"] == name and {"/schema/method@_here_": name} in spec["defaults"]
     assert set(spec) - {"defaults"} == {f.name for f in dataclasses.fields(entry.schema)}
     section = (ROOT / "docs" / "method.md").read_text().split("## §8")[1].split("\n## ")[0]
-    places = ("mrcert/core/", "`METHODS` in `mrcert/core/methods.py`", "mrcert/core/method_schemas.py", "conf/method/")
+    places = (
+        "mrcert/core/",
+        "`METHODS` in `mrcert/core/methods/__init__.py`",
+        "mrcert/core/methods/schemas.py",
+        "conf/method/",
+    )
     assert all(place in section for place in places)
 
 

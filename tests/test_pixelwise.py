@@ -10,7 +10,7 @@ from scipy.stats import norm
 
 from mrcert.__main__ import run_task
 from mrcert.core.methods import build_method
-from mrcert.core.pixelwise import PixelNoise, PixelwiseSmoothing, frame_motions, interval_certified
+from mrcert.core.methods.pixelwise import PixelNoise, PixelwiseSmoothing, frame_motions, interval_certified
 from mrcert.core.pose_bounds import piece_bounds
 from mrcert.core.projection import project
 from mrcert.data.sources import load
@@ -18,7 +18,7 @@ from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.config import validate
 from mrcert.infra.identity import identify
-from mrcert.infra.stages import train_key
+from mrcert.infra.resolver import train_key
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting.certify_log import read_log
 from mrcert.tasks.train import accuracy, as_tensors, evaluate
@@ -125,10 +125,11 @@ def test_a_rotation_piece_of_pi_or_more_is_refused_where_its_bound_would_not_hol
     assert float((images[0] - images[1]).norm()) < 1e-3 < float((middle - images[0]).norm())
     with pytest.raises(ValueError, match="narrower than pi"):
         piece_bounds(points, colors, PAPER_K, "rz", frames, images, 1.0)
+    method = ["method=pixelwise", f"method.certify.half_width={np.pi - 1e-9!r}"]
     with pytest.raises(ConfigError, match="at least 3 for half_width"):
-        PixelwiseSmoothing("rz", 0.25, np.pi - 1e-9, 2)
-    PixelwiseSmoothing("rz", 0.25, np.pi - 1e-9, 3)  # pieces just under pi: bounded
-    PixelwiseSmoothing("tz", 0.25, 10.0, 2)  # a translation piece of any width: a segment
+        validate(compose_cfg([*method, "motion=rz", "method.certify.frames=2"]))
+    validate(compose_cfg([*method, "motion=rz", "method.certify.frames=3"]))  # pieces just under pi: bounded
+    validate(compose_cfg(["method=pixelwise", "motion=tz", "method.certify.half_width=9", "method.certify.frames=2"]))
 
 
 def test_more_frames_give_smaller_bounds():
@@ -330,7 +331,7 @@ class ScriptedFrames:
         self.script, self.calls = script, 0
 
     def certify_view(self, view, n0, n, alpha, generator, center=None):
-        from mrcert.core.method import Certificate
+        from mrcert.core.methods.base import Certificate
 
         prediction, radius = self.script[self.calls]
         self.calls += 1

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from mrcert.core import projection
-from mrcert.core.geometry import AXES, axis_index, compose, motion_to_matrix, rotvec_to_matrix
+from mrcert.core.axes import AXES, axis_index
+from mrcert.core.geometry import compose, motion_to_matrix, rotvec_to_matrix
 from mrcert.core.projection import camera_points, project
 from tests.conftest import PAPER_K, random_cloud, random_motions
 

@@ -6,8 +6,8 @@ import torch
 from scipy.stats import binom, norm
 from statsmodels.stats.proportion import proportion_confint
 
-from mrcert.core.camera_motion import CameraMotionSmoothing
-from mrcert.core.method import ABSTAIN
+from mrcert.core.methods.base import ABSTAIN
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.sampling import SmoothedClassifier, VoteCounter, image_generator
 from mrcert.core.sequential import TOLERANCE, PredictDesign, SequentialDesign, predict_grid
 from tests.test_smoothing import Constant, tiny_sample

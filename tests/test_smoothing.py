@@ -12,8 +12,8 @@ from statsmodels.stats.proportion import proportion_confint
 from torch import nn
 
 from mrcert.__main__ import run_task
-from mrcert.core.camera_motion import CameraMotionSmoothing
-from mrcert.core.method import ABSTAIN
+from mrcert.core.methods.base import ABSTAIN
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.sampling import SmoothedClassifier, image_generator
 from mrcert.core.sequential import lower_confidence_bound
 from mrcert.data.samples import TestSample
@@ -362,7 +362,7 @@ def test_soundness_motions_within_the_radius_rarely_change_the_smoothed_predicti
     decisive trials to detect a flip rate of 10% with probability >= 0.8 (its power, computed)."""
     from scipy.stats import binom, binomtest
 
-    from mrcert.core.geometry import axis_index
+    from mrcert.core.axes import axis_index
     from mrcert.data.sources import load
     from mrcert.infra.checkpoints import load_classifier
 

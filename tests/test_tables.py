@@ -567,7 +567,7 @@ def test_the_learning_curve_table_and_its_summary_follow_the_numbers():
 
 
 def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_expect(store):
-    from mrcert.infra.experiment import ui_link_for
+    from mrcert.infra.experiment import ui_link
 
     mlflow.set_tracking_uri(f"sqlite:///{store / 'mlflow.db'}")
     client = mlflow.MlflowClient()
@@ -589,7 +589,7 @@ def test_runs_are_named_and_carry_their_figure_tables_and_data_as_mlflow_users_e
     assert "certified_accuracy.png" in certify_files
     experiment = client.get_experiment(runs["certify/vanilla"].info.experiment_id)
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
-    link = ui_link_for(str(store), "http://127.0.0.1:5000")
+    link = ui_link(compose_cfg(["task=ui"], store).tracking, "http://127.0.0.1:5000")
     assert (
         link
         == f"http://127.0.0.1:5000/#/experiments/{experiment.experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=mrcert"

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from mrcert.__main__ import bind, run_task
-from mrcert.core.camera_motion import CameraMotionSmoothing
 from mrcert.core.geometry import matrix_to_motion
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.models import build_model
 from mrcert.core.projection import camera_points, project
 from mrcert.data.holdout import validation_split

@@ -10,11 +10,11 @@ import torch
 import torchvision
 from torch import nn
 
-from mrcert.core.method import BaseClassifier, CertifyRequest
+from mrcert.core.methods.base import BaseClassifier, CertifyRequest
+from mrcert.core.methods.bound_propagation import BoundPropagation, IntervalVerifier
 from mrcert.core.models import Normalize, SmallCNN
 from mrcert.core.pose_bounds import image_boxes
 from mrcert.core.propagation import BoundNetwork
-from mrcert.core.verification import BoundPropagation, IntervalVerifier
 from mrcert.data.samples import TestSample
 from mrcert.errors import ConfigError, MrcertError
 from tests.conftest import PAPER_K, compose_cfg
@@ -328,7 +328,7 @@ def test_tasks_it_cannot_serve_are_refused_naming_what_it_serves():
     validate(compose_cfg([*base, "task=certify"]))
     validate(compose_cfg([*base, "task=attack", "task.smoothed=false"]))  # the base model alone
     with pytest.raises(ConfigError, match="method.relaxation"):
-        BoundPropagation("tz", 0.01, relaxation="alpha")
+        validate(compose_cfg([*base, "task=certify", "method.relaxation=alpha"]))
 
 
 def test_a_piece_down_to_two_float_poses_is_decided_by_classifying_them():

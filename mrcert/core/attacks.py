@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
-from mrcert.core.geometry import axis_index
+from mrcert.core.axes import axis_index
 from mrcert.core.sampling import image_generator
 
 

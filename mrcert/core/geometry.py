@@ -11,27 +11,6 @@ from __future__ import annotations
 
 import torch
 
-AXES: tuple[str, ...] = ("tx", "ty", "tz", "rx", "ry", "rz")
-"""Axis names in motion-vector order."""
-
-
-def axis_index(axis: str) -> int:
-    """Position of ``axis`` in the motion vector; raises ``ValueError`` for unknown names."""
-    try:
-        return AXES.index(axis)
-    except ValueError:
-        raise ValueError(f"unknown motion axis {axis!r}; allowed: {', '.join(AXES)}") from None
-
-
-def is_translation(axis: str) -> bool:
-    """True for tx, ty, tz (metres), False for rx, ry, rz (radians); raises for unknown names."""
-    return axis_index(axis) < 3
-
-
-def unit(axis: str) -> str:
-    """The unit of a motion along ``axis``: ``"m"`` or ``"rad"``."""
-    return "m" if is_translation(axis) else "rad"
-
 
 def _hat(v: torch.Tensor) -> torch.Tensor:
     """Skew-symmetric matrices ``v^`` with ``v^ w = v x w``; ``v`` has shape (..., 3)."""

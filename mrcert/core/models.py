@@ -10,13 +10,14 @@ from __future__ import annotations
 import importlib
 import typing
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch import nn
 
+from mrcert.core.checks import POSITIVE_INT, Check
 from mrcert.errors import ConfigError, MrcertError
 
 
@@ -34,6 +35,9 @@ class Normalize(nn.Module):
 
 class SmallCNN(nn.Module):
     """A small convolutional classifier that trains in minutes on a CPU (quick profile, tests)."""
+
+    config_checks: ClassVar[dict[str, Check]] = {"width": POSITIVE_INT}
+    """What its config's values must be (``model.net.width``), checked with the config (:func:`check_net`)."""
 
     def __init__(self, num_classes: int, width: int = 32):
         super().__init__()
@@ -108,7 +112,7 @@ def check_net(node: Any, where: str = "model.net", wanted: type = nn.Module) -> 
     ``nn.Module`` subclass, or a function annotated to return one, such as
     ``torchvision.models.resnet18``), and a nested ``_target_`` anywhere but as a parameter that
     the target itself declares to take such a module (checked the same way): a config builds the
-    network it describes and calls nothing else."""
+    network it describes and calls nothing else. A class's ``config_checks`` check its values."""
     name = node.get("_target_") if isinstance(node, Mapping) else None
     target = _importable(str(name))
     if target is None:
@@ -129,6 +133,9 @@ def check_net(node: Any, where: str = "model.net", wanted: type = nn.Module) -> 
                 f"{where}.{key}._target_", _target_of(value), f"none: {name} does not take a module as {key}"
             )
         check_net(value, f"{where}.{key}", module)
+    for key, check in getattr(made, "config_checks", {}).items():
+        if key in node:
+            check(f"{where}.{key}", node[key])
 
 
 def _has_target(value: Any) -> bool:

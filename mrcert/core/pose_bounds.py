@@ -24,7 +24,7 @@ import numba
 import numpy as np
 import torch
 
-from mrcert.core.geometry import axis_index, is_translation
+from mrcert.core.axes import axis_index, is_translation
 
 PIXEL_SLACK = 1e-6
 """Pixels by which every projected extent is widened (and a 'stays in one pixel' test

@@ -2,7 +2,7 @@
 method's noisy views, Cohen et al.'s CERTIFY and PREDICT with their explicit ABSTAIN, and the
 seeded generators every draw comes from.
 
-:class:`Smoothing` is the part of the plug point (:class:`~mrcert.core.method.Method`) that a
+:class:`Smoothing` is the part of the plug point (:class:`~mrcert.core.methods.base.Method`) that a
 smoothing method fills in -- its noisy views, the radius of one view's certificate, and its
 certification procedure on a :class:`SmoothedClassifier`; its certifier is that smoothed
 classifier.
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from scipy.stats import binomtest
 
-from mrcert.core.method import ABSTAIN, BaseClassifier, Certificate, CertifyRequest, Method, Render
+from mrcert.core.methods.base import ABSTAIN, BaseClassifier, Certificate, CertifyRequest, Method, Render
 from mrcert.core.models import predicted
 from mrcert.core.sequential import PredictDesign, SequentialDesign, lower_confidence_bound
 

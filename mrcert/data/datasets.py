@@ -21,7 +21,7 @@ from torch.utils.data import Dataset
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import matrix_to_motion, motion_to_matrix
-from mrcert.core.method import Method
+from mrcert.core.methods.base import Method
 from mrcert.core.projection import project, to_uint8
 from mrcert.data.cache import cached_arrays
 from mrcert.data.samples import TestSample

@@ -21,7 +21,7 @@ from PIL import Image
 
 from mrcert.core.crop import CropBound
 from mrcert.core.geometry import matrix_to_motion
-from mrcert.core.method import Method
+from mrcert.core.methods.base import Method
 from mrcert.data.datasets import DataBundle, ImageSet, SampleSet
 from mrcert.data.samples import TestSample
 from mrcert.errors import MrcertError

@@ -199,7 +199,7 @@ class TestSample:
 @dataclass
 class SampleRenderer:
     """:meth:`TestSample.renderer`: a callable ``motions -> images`` that also shows its scene
-    (a :class:`~mrcert.core.method.SceneRender`, for a method that reasons about the cloud
+    (a :class:`~mrcert.core.methods.base.SceneRender`, for a method that reasons about the cloud
     itself) and counts the camera poses it has projected (``projected``: a certificate's
     rendering cost)."""
 

@@ -10,7 +10,7 @@ scheduler and gradient-scaler states, and the best validation result so far.
 
 ``model.checkpoint`` may be a file path or an MLflow artifact URI (``runs:/<run_id>/<path>``);
 which model an evaluation reads when it is null, and how that model is named in the
-evaluation's key, is :mod:`mrcert.infra.stages`'s.
+evaluation's key, is :mod:`mrcert.infra.resolver`'s.
 """
 
 from __future__ import annotations

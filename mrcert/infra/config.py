@@ -9,19 +9,17 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
 import os
 import secrets
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, MissingMandatoryValue, OmegaConf
 
-from mrcert.core.geometry import AXES, is_translation
+from mrcert.core.checks import check_values
 from mrcert.errors import ConfigError
-from mrcert.infra.runtime import AUTO_BATCH
-from mrcert.infra.schema import SCHEMAS, register
+from mrcert.infra.schema import SCHEMAS, Root, register
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 _FALLBACK_UID = secrets.token_hex(3)
@@ -56,9 +54,6 @@ def per_profile(values: Mapping[str, Any], *, _root_: DictConfig) -> Any:
 
 OmegaConf.register_new_resolver("per_profile", per_profile, replace=True)
 
-MAX_SEQUENTIAL_PREDICT = 400
-"""The largest ``task.n`` sequential PREDICT plans for (about 20 s on 2 CPU cores at 400)."""
-
 PER_TASK_KEYS = ("n", "decision", "skip", "sequential")
 """What an experiment may set for one task only, under ``per_task.<task>`` (``per_task: {attack:
 {skip: 2}}``): the evaluation tasks' files read these keys through ``${task_setting:KEY,DEFAULT}``,
@@ -75,127 +70,24 @@ OmegaConf.register_new_resolver("task_setting", task_setting, replace=True)
 
 # --- validation -------------------------------------------------------------------------
 
-Rule = tuple[Callable[[Any], bool], str]
+
+def structured_nodes(cfg: DictConfig, where: str) -> Iterator[tuple[type, str]]:
+    """(schema, dotted key) of the node at ``where`` and of its children, for those a schema
+    types (``- /schema/<group>@_here_: <name>`` in their option's defaults), in order."""
+    node = OmegaConf.select(cfg, where)
+    if not isinstance(node, DictConfig):
+        return
+    schema = OmegaConf.get_type(node)
+    if dataclasses.is_dataclass(schema):
+        yield schema, where
+    for key in node:
+        yield from structured_nodes(cfg, f"{where}.{key}")
 
 
-def _number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _positive(v: Any) -> bool:
-    return _number(v) and v > 0
-
-
-def _positive_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool) and v >= 1
-
-
-def _axis(v: Any) -> bool:
-    """One axis, or several joined by '+' (a multi-axis smoothing's name)."""
-    return isinstance(v, str) and all(a in AXES for a in v.split("+"))
-
-
-_ANGLES = "a non-empty list of finite angles in degrees"
-RULES: dict[str, Rule] = {
-    # Rules by the last component of a key, so that every group's keys of that name obey them.
-    "sigma": (_positive, "a finite number > 0"),
-    "radius": (lambda v: _number(v) and v >= 0, "a finite number >= 0"),
-    "radius_step": (_positive, "a finite number > 0"),
-    "alpha": (lambda v: _number(v) and 0 < v < 1, "a number strictly between 0 and 1"),
-    "height": (_positive_int, "an integer >= 1"),
-    "width": (_positive_int, "an integer >= 1"),
-    "fx": (_positive, "a finite number > 0"),
-    "fy": (_positive, "a finite number > 0"),
-    "cx": (_number, "a finite number"),
-    "cy": (_number, "a finite number"),
-    "density": (_positive, "a finite number > 0 (metres)"),
-    "extent": (lambda v: v is None or _positive(v), "a finite number > 0 (metres), or null"),
-    "num": (_positive_int, "an integer >= 1"),
-    "k": (_positive_int, "an integer >= 1"),
-    "axis": (_axis, f"one of {', '.join(AXES)} (or several joined by '+')"),
-    "axes": (
-        lambda v: v is None or isinstance(v, list) and len(v) > 0 and all(_axis(a) for a in v),
-        f"a non-empty list of axes from {', '.join(AXES)} (or null for all)",
-    ),
-    "backend": (lambda v: v in ("auto", "numba", "torch", "triton"), "one of auto, numba, torch, triton"),
-    "decision": (lambda v: v in ("predict", "vote"), "predict or vote"),
-    "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**32, "an integer in [0, 2**32)"),
-    "room_density": (_positive, "a finite number > 0 (metres)"),
-    "per_class": (_positive_int, "an integer >= 1"),
-    "max_translation": (lambda v: _number(v) and v >= 0, "a finite number >= 0 (metres)"),
-    "max_rotation": (lambda v: _number(v) and v >= 0, "a finite number >= 0 (radians)"),
-    "every_k": (_positive_int, "an integer >= 1"),
-    "voxel": (_positive, "a finite number > 0 (metres)"),
-    "variant": (lambda v: v in ("vanilla", "augmented"), "vanilla or augmented"),
-    "epochs": (_positive_int, "an integer >= 1"),
-    "val_fraction": (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
-    "batch_size": (_positive_int, "an integer >= 1"),
-    "eval_batch_size": (_positive_int, "an integer >= 1"),
-    "lr": (_positive, "a finite number > 0"),
-    "momentum": (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
-    "weight_decay": (lambda v: _number(v) and v >= 0, "a finite number >= 0"),
-    "step_size": (_positive_int, "an integer >= 1"),
-    "gamma": (lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
-    "n": (_positive_int, "an integer >= 1"),
-    "n0": (_positive_int, "an integer >= 1"),
-    "skip": (_positive_int, "an integer >= 1"),
-    "max": (lambda v: v is None or _positive_int(v), "an integer >= 1, or null for all"),
-    "shard": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
-    "num_shards": (_positive_int, "an integer >= 1"),
-    "crop_sigmas": (_positive, "a finite number > 0"),
-    "look": (_positive_int, "an integer >= 1"),
-    "sigmas": (
-        lambda v: isinstance(v, list) and len(v) > 0 and all(_positive(x) for x in v),
-        "a non-empty list of finite numbers > 0",
-    ),
-    "pitches": (
-        lambda v: isinstance(v, list) and len(v) > 0 and all(_number(x) and -90 < x < 90 for x in v),
-        "a non-empty list of angles in degrees strictly between -90 and 90",
-    ),
-    "rolls": (lambda v: isinstance(v, list) and len(v) > 0 and all(_number(x) for x in v), _ANGLES),
-    "yaws": (lambda v: v is None or isinstance(v, list) and len(v) > 0 and all(_number(x) for x in v), _ANGLES),
-    "distance": (lambda v: v is None or _positive(v), "a finite number > 0 (metres), or null"),
-    "occlusion_patch": (_positive_int, "an integer >= 1 (pixels)"),
-    "classes": (
-        lambda v: v is None or isinstance(v, list) and len(v) > 0 and len(set(v)) == len(v),
-        "null (every class), or a non-empty list of class names, each once",
-    ),
-    "surroundings": (
-        lambda v: isinstance(v, list) and all(x in ("room", "table") for x in v),
-        "a list of scene parts from room, table (or [] for the object alone)",
-    ),
-}
-TASK_BATCH_RULE: Rule = (
-    lambda v: v == "auto" or _positive_int(v),
-    f"an integer >= 1, or auto ({AUTO_BATCH['cpu']} on a CPU, {AUTO_BATCH['cuda']} on a GPU)",
-)
-RANGE_RULE: Rule = (
-    lambda v: isinstance(v, list) and len(v) == 2 and all(_number(x) for x in v) and v[0] <= v[1],
-    "a list [low, high] of two finite numbers with low <= high",
-)
-
-
-def rule_for(path: str) -> Rule | None:
-    """The rule for a dotted key, by its last component (``*_range`` keys share one rule)."""
-    name = path.rsplit(".", 1)[-1]
-    if path.startswith("task.tags."):
-        return None
-    if path == "task.batch_size":
-        return TASK_BATCH_RULE
-    return RANGE_RULE if name.endswith("_range") else RULES.get(name)
-
-
-def _leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    """(dotted key, value) of every leaf; a list with a rule of its own (``axes``, ``*_range``) is one leaf."""
-    if isinstance(node, dict):
-        children = [(f"{prefix}.{k}" if prefix else str(k), v) for k, v in node.items()]
-    else:
-        children = [(f"{prefix}[{i}]", v) for i, v in enumerate(node)]
-    for path, value in children:
-        if isinstance(value, dict) or (isinstance(value, list) and rule_for(path) is None):
-            yield from _leaves(value, path)
-        else:
-            yield path, value
+def _at(data: Mapping[str, Any], where: str) -> Any:
+    for key in where.split("."):
+        data = data[key]
+    return data
 
 
 def _unknown_keys(node: Any, prefix: str) -> Iterator[tuple[str, list[str]]]:
@@ -215,24 +107,9 @@ def _unknown_keys(node: Any, prefix: str) -> Iterator[tuple[str, list[str]]]:
             yield from _unknown_keys(child, f"{prefix}.{key}")
 
 
-TOP_LEVEL = (
-    "task",
-    "data",
-    "profile",
-    "train",
-    "motion",
-    "method",
-    "model",
-    "attack",
-    "tracking",
-    "paths",
-    "seed",
-    "device",
-    "skip_finished",
-    "per_task",
-)
-"""The root config's keys (conf/config.yaml and its groups); anything else at the top, such as
-a mistyped ``+seeed=1``, is refused instead of silently making a separate result."""
+TOP_LEVEL = tuple(f.name for f in dataclasses.fields(Root))
+"""The root config's keys; anything else at the top, such as a mistyped ``+seeed=1``, is refused
+instead of silently making a separate result."""
 
 
 def _unknown_top_level(cfg: DictConfig) -> None:
@@ -246,48 +123,11 @@ def _unknown_top_level(cfg: DictConfig) -> None:
         )
 
 
-CURVE_POINTS = 100_000
-"""The most radii a certified-accuracy curve may have (``5 sigma / radius_step``: CERTIFY's
-largest radius is 2.6 sigma at n = 1000 and under 5 sigma up to n = 10^6)."""
-
-
-def _motion_scale(motion: Mapping[str, Any], data: Mapping[str, Any]) -> None:
-    """Sigma and radius a motion can represent: a rotation angle is at most pi (a larger one is a
-    smaller rotation the other way), a translation at most the scene's extent where the data
-    set declares one (``data.extent``: a camera moved further sees none of it), and the
-    certified-accuracy curve has at most ``CURVE_POINTS`` radii."""
-    sigma, radius, step = (motion.get(k) for k in ("sigma", "radius", "radius_step"))
-    if not all(_number(v) for v in (sigma, radius, step)) or step <= 0:
-        return  # reported by the per-key rules
-    extent = data.get("extent")
-    if motion.get("axes"):  # multi-axis: radii in sigma units, one sigma per axis
-        axes = zip(motion["axes"], motion["sigmas"], strict=False)
-        scales = [(f"motion.sigmas[{i}]", a, v) for i, (a, v) in enumerate(axes)]
-    else:
-        scales = [(f"motion.{k}", str(motion.get("axis")), v) for k, v in (("sigma", sigma), ("radius", radius))]
-    for key, axis, value in scales:
-        if axis not in AXES:
-            continue  # reported by the per-key rules
-        if not is_translation(axis) and value > math.pi:
-            raise ConfigError(key, value, "a rotation angle in radians, at most pi")
-        if is_translation(axis) and _number(extent) and value > extent:
-            scene = f"the extent of the {data.get('name')} scene (data.extent)"
-            raise ConfigError(key, value, f"at most {extent:.3g} m, {scene}")
-    largest = max(5 * sigma, radius)
-    if largest / step > CURVE_POINTS:
-        raise ConfigError(
-            "motion.radius_step",
-            step,
-            f"at least {largest / CURVE_POINTS:.3g}: the certified-accuracy curve up to "
-            f"{largest:.6g} (5 sigma or the radius) would have more than {CURVE_POINTS} radii",
-        )
-
-
 def _method(cfg: DictConfig, data: dict) -> None:
     """The method is one mrcert has, it accepts its parameters and the motion, and it does what
     the task asks of it (built here once, so that a refusal comes before any run opens)."""
-    from mrcert.core.method import SERVICES
     from mrcert.core.methods import build_method
+    from mrcert.core.methods.base import SERVICES
 
     if "method" not in data or "motion" not in data:
         return
@@ -322,6 +162,7 @@ def trained_for(data: dict) -> dict | None:
         schema = OmegaConf.structured(registered(str(value["name"])).schema)
     except ConfigError as exc:
         raise ConfigError("model.trained_for.name", value["name"], exc.allowed) from None
+    check_values(registered(str(value["name"])).schema, value, "model.trained_for")
     try:
         merged = OmegaConf.merge(schema, value)
     except Exception:  # noqa: BLE001 - an unknown key or a value of the wrong type
@@ -356,32 +197,15 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(
                 key, OmegaConf.select(cfg, key), f"not a key of this {group}; its keys: {', '.join(known)}"
             )
-    for path, value in _leaves(data):
-        rule = rule_for(path)
-        if rule is not None and not rule[0](value):
-            raise ConfigError(path, value, rule[1])
-    task = data.get("task", {})
-    shard, shards = task.get("shard", 0), task.get("num_shards")
-    if isinstance(shards, int) and isinstance(shard, int) and not 0 <= shard < shards:
-        raise ConfigError("task.shard", task.get("shard"), f"an integer in [0, task.num_shards={task['num_shards']})")
-    look, n = task.get("look"), task.get("n")
-    if task.get("sequential") and isinstance(n, int) and not (isinstance(look, int) and 1 <= look <= n):
-        raise ConfigError("task.look", look, f"an integer in [1, task.n={n}]: the sequential procedure's first look")
-    if task.get("sequential") and task.get("name") in ("smooth", "attack"):
-        if task.get("decision") == "vote":
-            raise ConfigError(
-                "task.sequential", True, "false with task.decision=vote: sequential PREDICT uses Cohen's test"
-            )
-        if isinstance(n, int) and n > MAX_SEQUENTIAL_PREDICT:
-            limit = f"at most {MAX_SEQUENTIAL_PREDICT} with task.sequential=true (its exact plan grows with n squared)"
-            raise ConfigError("task.n", n, limit)
-    extent = task.get("extent") or {}
-    for axis, value in extent.items():
-        if axis not in AXES or not _number(value) or value < 0:
-            raise ConfigError(f"task.extent.{axis}", value, f"axes from {', '.join(AXES)} with finite values >= 0")
-    motion = data.get("motion", {})
-    _motion_scale(motion, data.get("data", {}))
-    _per_task(data.get("per_task"))
+    check_values(Root, data, "")
+    _per_task(data.get("per_task"))  # before the task's own values: a bad one is named where it was set
+    nodes = [node for group in data for node in structured_nodes(cfg, group)]
+    for schema, where in (node for node in nodes if "." not in node[1]):  # a group's schema checks its nested ones
+        check_values(schema, data[where], where)
+    for schema, where in nodes:
+        relations = getattr(schema, "relations", None)
+        if relations is not None:
+            relations(_at(data, where), where, data)
     _method(cfg, data)
     _trained_for(data)
     if "model" in data:
@@ -412,6 +236,7 @@ def _per_task(settings: Any) -> None:
                 raise ConfigError(
                     f"per_task.{task}.{key}", value, f"one of the per-task settings {', '.join(PER_TASK_KEYS)}"
                 )
+        check_values(SCHEMAS["task"][task], values, f"per_task.{task}")
 
 
 def _device(device: Any) -> None:

@@ -153,14 +153,6 @@ def ui_link(tracking: DictConfig, base: str) -> str:
     return f"{base.rstrip('/')}/#/experiments/{ensure_experiment(tracking)}/runs?{query}"
 
 
-def ui_link_for(outputs: str, base: str, experiment: str = "mrcert") -> str:
-    """:func:`ui_link` for the default SQLite store under ``outputs`` (what ``make ui`` serves)."""
-    uri = f"sqlite:///{Path(outputs).resolve() / 'mlflow.db'}"
-    location = str(Path(outputs).resolve() / "mlartifacts")
-    tracking = OmegaConf.create({"enabled": True, "uri": uri, "artifact_location": location, "experiment": experiment})
-    return ui_link(tracking, base)
-
-
 def run_tags(cfg: DictConfig) -> dict[str, str]:
     """Tags that tables and look-ups filter on."""
     select = lambda key: OmegaConf.select(cfg, key, default=None)  # noqa: E731

@@ -13,7 +13,7 @@ config into two keys:
 A file given by path (a checkpoint, a point cloud, an imported log) is identified by the
 sha256 of its content, so editing the file changes the key; the model an evaluation reads is
 identified by its train run's key and its checkpoint's content, never by a store's run id
-(:mod:`mrcert.infra.stages`, which binds it).
+(:mod:`mrcert.infra.resolver`, which binds it).
 
 Classification is by the longest matching prefix of a dotted key among ``defines`` and
 ``ignores``; a key that neither mentions defines the result (a new key is never silently
@@ -69,7 +69,7 @@ AS_BUILT = tuple(
 ignored (``Identity.ignore_when``), so those keys stay valid."""
 
 KEY_SCHEME = ("mrcert.key_scheme", "content")
-"""Tag of a run whose keys name its model by content (:mod:`mrcert.infra.stages`); a run without
+"""Tag of a run whose keys name its model by content (:mod:`mrcert.infra.resolver`); a run without
 it was keyed by its train run's id, and is migrated (:mod:`mrcert.infra.key_migration`)."""
 
 PARTITION = ("task.shard", "task.num_shards")
@@ -218,7 +218,7 @@ def digest(values: Mapping[str, Any]) -> str:
 
 def identify(cfg: DictConfig | Mapping[str, Any], identity: Identity, model: Any = None) -> RunIdentity:
     """The run and cell keys of ``cfg``. For a task that evaluates a model, ``model`` is the
-    bound :class:`mrcert.infra.stages.Model`, whose identity stands for ``model.checkpoint``
+    bound :class:`mrcert.infra.resolver.Model`, whose identity stands for ``model.checkpoint``
     (without one, the value of ``model.checkpoint`` itself, as keys were made before models
     were named by content: :mod:`mrcert.infra.key_migration` recomputes those)."""
     values = defining_values(cfg, identity) | {"generator_version": GENERATOR_VERSION}
@@ -229,6 +229,6 @@ def identify(cfg: DictConfig | Mapping[str, Any], identity: Identity, model: Any
             train_run = model.train_run
         checkpoint = values.get("model.checkpoint")
         if not checkpoint:
-            raise ValueError("identify() needs the model bound for a task that evaluates one (mrcert.infra.stages)")
+            raise ValueError("identify() needs the model bound for a task that evaluates one (mrcert.infra.resolver)")
     cell = {k: v for k, v in values.items() if not any(_matches(k, p) for p in identity.partition)}
     return RunIdentity(digest(values), digest(cell), values, checkpoint, train_run)

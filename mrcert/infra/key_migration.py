@@ -1,7 +1,7 @@
 """Stores written before models were named by content: their evaluations re-keyed when a launch
 first opens the store (never by a read).
 
-An evaluation made before :mod:`mrcert.infra.stages` existed holds in its run and cell keys the
+An evaluation made before :mod:`mrcert.infra.resolver` existed holds in its run and cell keys the
 ``runs:/<train run id>/...`` URI of its model, an id that only its own store knows. Migrating a
 run recomputes its keys from its ``resolved_config.yaml`` with the model named by content (its
 train run's key and its checkpoint's digest) and tags it :data:`~mrcert.infra.identity.KEY_SCHEME`,
@@ -46,7 +46,7 @@ GATHERED = "mrcert.gathered_from"
 
 
 class _StoreRuns:
-    """:class:`mrcert.infra.stages.RunRecords` over one experiment's runs, by id or by origin."""
+    """:class:`mrcert.infra.resolver.RunRecords` over one experiment's runs, by id or by origin."""
 
     def __init__(self, client, runs: list):
         self.client = client
@@ -76,7 +76,7 @@ def _config(client, run) -> DictConfig | None:
 def migrate(client, experiment_id: str) -> dict[str, int]:
     """Re-key every evaluation of the experiment that names its model by run id; counts of
     ``migrated`` runs and of runs that ``kept`` their keys."""
-    from mrcert.infra.stages import Model, model_identity, run_of
+    from mrcert.infra.resolver import Model, model_identity, run_of
 
     runs = all_runs(client, experiment_id)
     store = _StoreRuns(client, runs)

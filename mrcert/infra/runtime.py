@@ -1,30 +1,31 @@
-"""Run-time choices shared by tasks: the device, and a description of the machine and the code."""
+"""Run-time choices shared by tasks: the device, and a description of the machine and the code.
+torch is imported where a run asks for it, so that ``mrcert --help`` and config validation
+stay light."""
 
 from __future__ import annotations
 
 import functools
 import subprocess
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 from mrcert.errors import MrcertError
+from mrcert.infra.schema import AUTO_BATCH
 
 
 def resolve_device(name: str) -> torch.device:
     """``auto`` picks CUDA when available, else CPU; asking for CUDA without one is an error."""
+    import torch
+
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise MrcertError(f"device={name!r} asks for CUDA but none is available; use device=cpu or device=auto")
     return device
-
-
-# Samples rendered and classified at once for task.batch_size=auto, by device type (docs/performance.md):
-# on a CPU 16 keep the activations in cache (3x faster than 200 for the small CNN); on an H100, 1,100
-# ResNet-18 forward passes took 0.047 s in batches of 200 against 0.171 s in batches of 16.
-AUTO_BATCH = {"cpu": 16, "cuda": 200}
 
 
 def batch_size(setting: int | str, device: torch.device) -> int:
@@ -73,6 +74,8 @@ def machine() -> str:
     """The machine a run executes on, in words: CPU model, cores, and the GPU when there is one."""
     import os
     import platform
+
+    import torch
 
     cpu = platform.processor() or platform.machine()
     try:

@@ -31,6 +31,8 @@ class Task:
     identity: ClassVar[Identity] = Identity(defines=("task",))
     """Which config keys define the task's result (see :mod:`mrcert.infra.identity`)."""
     reusable: ClassVar[bool] = True
+    tracked: ClassVar[bool] = True
+    """Whether it runs inside an MLflow run of its own (``task=ui`` serves the store and adds no run to it)."""
     """Whether a FINISHED run of the same run key may stand in for a new one (``skip_finished``)."""
     log: ClassVar[str | None] = None
     """The per-image log the task writes (in its run folder and artifacts), for tables and shards."""
@@ -163,4 +165,4 @@ FIXED_PREDICT = (("task.sequential", False, "task.sequential"), ("task.sequentia
 """Fixed-n PREDICT (smooth, attack) keeps the keys it had before sequential PREDICT existed."""
 
 HELPER_IGNORES = ("data", "model", "motion", "method", "seed", "profile", "train", "attack")
-"""What a helper task (import, gather) never depends on: the composed data, model and recipe."""
+"""What a helper task (import, gather, ui) never depends on: the composed data, model and recipe."""

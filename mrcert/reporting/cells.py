@@ -2,7 +2,7 @@
 that config's cell key (:mod:`mrcert.infra.identity`), or from none.
 
 :class:`RunIndex` holds the FINISHED runs of the store (one MLflow query). A composed config is
-resolved as a launch resolves it (:func:`mrcert.infra.stages.resolve`: the model is the
+resolved as a launch resolves it (:func:`mrcert.infra.resolver.resolve`: the model is the
 FINISHED train run of the derived train key, named in the key by content), and the cell keeps
 the runs that make one complete result: one run, or every shard ``0..N-1`` of one sharded job.
 Runs with other settings (a ``task.max=2`` smoke run, another alpha, another model) have other
@@ -30,9 +30,9 @@ from mrcert.errors import MrcertError
 from mrcert.infra import seals
 from mrcert.infra.config import CONF_DIR
 from mrcert.infra.experiment import artifact, read_run_config, run_file
+from mrcert.infra.resolver import resolve
 from mrcert.infra.run_store import CELL_COLUMN, KEY_COLUMN, finished_table, newest_train_run_in
 from mrcert.infra.schema import SCHEMAS
-from mrcert.infra.stages import resolve
 from mrcert.infra.tasks import TASKS
 from mrcert.reporting import certify_log
 
@@ -144,7 +144,7 @@ class RunIndex:
         """The index of ``experiment``'s FINISHED runs in the current store (read only)."""
         return cls(finished_table(experiment), images)
 
-    # --- what the resolver reads (mrcert.infra.stages.TrainRuns) ------------------------------
+    # --- what the resolver reads (mrcert.infra.resolver.TrainRuns) ------------------------------
     def newest_train_run(self, key: str) -> str | None:
         """The newest FINISHED train run with run key ``key``."""
         return newest_train_run_in(self.df, key)

@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from mrcert.core.geometry import axis_index, is_translation
-from mrcert.core.method import Method
+from mrcert.core.axes import axis_index, is_translation
+from mrcert.core.methods.base import Method
 from mrcert.reporting.certify_log import curve
 from mrcert.reporting.imaging import pil_array
 from mrcert.reporting.plots import save

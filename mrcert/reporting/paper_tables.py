@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from mrcert.core.geometry import unit
+from mrcert.core.axes import unit
 from mrcert.reporting import certify_log, paper_results
 from mrcert.reporting.cells import Cell
 from mrcert.reporting.experiment_cells import ExperimentCells, Measure

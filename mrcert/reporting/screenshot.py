@@ -1,23 +1,19 @@
-"""A screenshot of the MLflow UI exactly as ``make ui`` serves and links it, taken by a headless
-Chromium with a fresh profile (what a user's first visit shows):
-
-    python -m mrcert.reporting.screenshot OUTPUTS PNG [--port 5077]
-
-``make figures`` uses it for the README's picture of the runs page.
+"""A page of the MLflow UI as a headless Chromium with a fresh profile shows it (what a user's
+first visit shows): ``mrcert task=ui task.screenshot=PNG``, which ``make figures`` runs for the
+README's picture of the runs page.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
-import signal
 import subprocess
-import sys
 import tempfile
 import time
 import urllib.request
 from pathlib import Path
+
+from mrcert.errors import MrcertError
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
 # Chromium in a closed network: no background connections, no first-run dialogs.
@@ -36,22 +32,7 @@ def browser() -> str:
     for name in BROWSERS:
         if found := shutil.which(name):
             return found
-    raise SystemExit(f"no headless browser ({', '.join(BROWSERS)}): on Debian, 'sudo apt-get install chromium'")
-
-
-def serve(outputs: Path, port: int) -> tuple[subprocess.Popen, str]:
-    """``make ui`` on ``outputs``: the server's process and the link it prints."""
-    proc = subprocess.Popen(
-        ["make", "--no-print-directory", "ui", f"OUTPUTS={outputs}", f"PORT={port}"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
-    for line in proc.stdout:
-        if line.startswith("MLflow UI: "):
-            return proc, line.split(": ", 1)[1].strip()
-    raise SystemExit(f"make ui exited ({proc.wait()}) without printing its link")
+    raise MrcertError(f"no headless browser ({', '.join(BROWSERS)}): on Debian, 'sudo apt-get install chromium'")
 
 
 def wait_until_up(base: str, seconds: float = 90) -> None:
@@ -62,7 +43,7 @@ def wait_until_up(base: str, seconds: float = 90) -> None:
                 return
         except OSError:
             time.sleep(0.5)
-    raise SystemExit(f"the MLflow UI at {base} did not answer within {seconds:.0f} s")
+    raise MrcertError(f"the MLflow UI at {base} did not answer within {seconds:.0f} s")
 
 
 def screenshot(link: str, png: Path, size: str = "1920,1000", budget_ms: int = 20000) -> Path:
@@ -75,24 +56,3 @@ def screenshot(link: str, png: Path, size: str = "1920,1000", budget_ms: int = 2
             args.insert(1, "--no-sandbox")
         subprocess.run(args, check=True, capture_output=True, timeout=180)
     return png
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("outputs", type=Path, help="the store's outputs folder (holding mlflow.db)")
-    parser.add_argument("png", type=Path)
-    parser.add_argument("--port", type=int, default=5077)
-    args = parser.parse_args(argv)
-    proc, link = serve(args.outputs.resolve(), args.port)
-    try:
-        wait_until_up(link.split("/#/")[0])
-        screenshot(link, args.png)
-    finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(timeout=30)
-    print(f"{args.png}: {link}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from mrcert.core.geometry import unit
+from mrcert.core.axes import unit
 from mrcert.reporting import certify_log
 from mrcert.reporting.cells import compose_config
 from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos

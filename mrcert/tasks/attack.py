@@ -22,8 +22,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from mrcert.core.attacks import Attack as MotionAttack
-from mrcert.core.geometry import axis_index, unit
-from mrcert.core.method import ABSTAIN
+from mrcert.core.axes import axis_index, unit
+from mrcert.core.methods.base import ABSTAIN
 from mrcert.core.models import predicted
 from mrcert.core.sampling import image_generator
 from mrcert.errors import MrcertError

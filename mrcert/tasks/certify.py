@@ -12,8 +12,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert.core.method import CertifyRequest
 from mrcert.core.methods import build_method
+from mrcert.core.methods.base import CertifyRequest
 from mrcert.core.sampling import image_generator
 from mrcert.infra.tasks import EVALUATION, Task, model_title
 from mrcert.infra.tracking import RunContext
@@ -62,7 +62,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "projected": render.projected,  # camera poses rendered for this certificate
             "margin": float(cert.margin),
             "p_a_lower": float(cert.p_a_lower),
-            "sigma": "+".join(map(repr, dist.sigmas)),
+            "sigma": "+".join(map(repr, dist.noise_scales)),
             "axis": dist.axes_label,
             "radius_unit": cert.unit,
             "sigma_unit": dist.sigma_unit,

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mrcert.core.method import BaseClassifier, Certifier, Method, Render
 from mrcert.core.methods import build_method
+from mrcert.core.methods.base import BaseClassifier, Certifier, Method, Render
 from mrcert.core.sampling import SmoothedClassifier
 from mrcert.data.datasets import DataBundle, SampleSet
 from mrcert.data.samples import TestSample

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.geometry import axis_index
+from mrcert.core.axes import axis_index
 from mrcert.core.pose_bounds import image_boxes
 from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import write_onnx

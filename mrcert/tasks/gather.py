@@ -5,7 +5,7 @@ server is shared: a GPU machine, a laptop, a cluster node with its own SQLite st
 Each FINISHED run of the source's experiment is copied once, whole and as it is: its name,
 start and end time, tags, params, every metric's history, logged data sets and artifacts
 (checkpoints, logs, ``resolved_config.yaml``). Its run and cell keys name its model by content
-(:mod:`mrcert.infra.stages`), not by a run id, so a copied certification fills the same table
+(:mod:`mrcert.infra.resolver`), not by a run id, so a copied certification fills the same table
 cell here as there without any change. A copy carries ``mrcert.gathered_from`` = the source
 run's id, so a second gather copies only what is new; a copy that a kill left unfinished is
 deleted and made again. The one id a copy does not keep as it is, is MLflow's own link to a sweep's

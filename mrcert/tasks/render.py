@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mrcert.core.geometry import AXES, axis_index, is_translation
+from mrcert.core.axes import AXES, axis_index, is_translation
 from mrcert.core.methods import build_method
 from mrcert.data.cache import folder_size
 from mrcert.data.sources import is_scene, load, load_scene

@@ -8,7 +8,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from mrcert.core.method import ABSTAIN
+from mrcert.core.methods.base import ABSTAIN
 from mrcert.core.sampling import image_generator
 from mrcert.infra.tasks import EVALUATION, FIXED_PREDICT, Task, model_title
 from mrcert.infra.tracking import RunContext

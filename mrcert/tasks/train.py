@@ -1,5 +1,5 @@
 """``task=train``: vanilla and augmented base classifiers with the recipe in ``train.*``; an
-augmented model trains as its certification method asks (:mod:`mrcert.core.method`: images
+augmented model trains as its certification method asks (:mod:`mrcert.core.methods.base`: images
 rendered under the method's training motions, each batch perturbed by it), and its validation
 and test images are perturbed the same way (with noise fixed across epochs) before it sees them.
 
@@ -29,8 +29,8 @@ import torch
 from omegaconf import DictConfig
 from torch import nn
 
-from mrcert.core.method import Method
 from mrcert.core.methods import build_method
+from mrcert.core.methods.base import Method
 from mrcert.core.models import build_model, non_finite, predicted
 from mrcert.core.sampling import image_generator
 from mrcert.data.datasets import ImageSet
@@ -40,8 +40,8 @@ from mrcert.errors import MrcertError
 from mrcert.infra import checkpoints
 from mrcert.infra.identity import Identity, file_identity
 from mrcert.infra.progress import progress
+from mrcert.infra.resolver import DIGEST_TAG
 from mrcert.infra.runtime import resolve_device
-from mrcert.infra.stages import DIGEST_TAG
 from mrcert.infra.tasks import DATA_FILES, Task, model_title
 from mrcert.infra.tracking import RunContext
 

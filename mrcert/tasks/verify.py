@@ -1,6 +1,6 @@
 """``task=verify``: VNN-LIB properties of ONNX classifiers answered as the competition's tools
 answer them (``unsat``, ``sat`` with a counterexample, ``unknown``, ``timeout``), by bound
-propagation with input splitting (:func:`mrcert.core.verification.verify_box`).
+propagation with input splitting (:func:`mrcert.core.methods.bound_propagation.verify_box`).
 
 One instance (``task.onnx`` + ``task.vnnlib``) or a benchmark's ``instances.csv`` (rows
 ``onnx,vnnlib,timeout`` relative to its folder, gzipped files read as they are). Each answer is
@@ -21,8 +21,8 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig
 
+from mrcert.core.methods.bound_propagation import verify_box
 from mrcert.core.propagation import BoundNetwork
-from mrcert.core.verification import verify_box
 from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import read_onnx
 from mrcert.formats.vnnlib import counterexample_text, read_vnnlib

@@ -33,10 +33,18 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.camera_motion import CameraMotionSmoothing
+from mrcert.core.axes import axis_index, unit
 from mrcert.core.crop import CropBound
-from mrcert.core.geometry import axis_index, is_translation, unit
-from mrcert.core.method import ABSTAIN, BaseClassifier, Certificate, CertifyRequest, Method, SceneRender, single_axis
+from mrcert.core.methods.base import (
+    ABSTAIN,
+    BaseClassifier,
+    Certificate,
+    CertifyRequest,
+    Method,
+    SceneRender,
+    single_axis,
+)
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.models import predicted
 from mrcert.core.pose_bounds import image_boxes
 from mrcert.core.propagation import BoundNetwork
@@ -80,26 +88,7 @@ class BoundPropagation(Method):
     log_columns: ClassVar[tuple[str, ...]] = ("outcome", "pieces", "bound_passes", "forward_passes", "counterexample")
 
     def __post_init__(self):
-        axis_index(self.axis)
-        if not self.half_width > 0:
-            raise ConfigError("method.half_width", self.half_width, "> 0 (the motion's unit)")
-        if not is_translation(self.axis) and self.half_width >= np.pi / 2:
-            raise ConfigError(
-                "method.half_width", self.half_width, f"< pi/2 on {self.axis} (each piece narrower than pi)"
-            )
-        if self.relaxation not in ("interval", "crown"):
-            raise ConfigError("method.relaxation", self.relaxation, "interval or crown")
-        for key, value, least in (
-            ("max_pieces", self.max_pieces, 1),
-            ("samples", self.samples, 2),
-            ("batch", self.batch, 1),
-        ):
-            if int(value) != value or value < least:
-                raise ConfigError(f"method.{key}", value, f"an integer >= {least}")
-        if int(self.crown_neurons) != self.crown_neurons or self.crown_neurons < 0:
-            raise ConfigError("method.crown_neurons", self.crown_neurons, "an integer >= 0")
-        if not self.seconds > 0:
-            raise ConfigError("method.seconds", self.seconds, "> 0 (the time budget per image)")
+        axis_index(self.axis)  # its values' ranges: BoundPropagationConfig's checks
 
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> BoundPropagation:
@@ -123,7 +112,7 @@ class BoundPropagation(Method):
         return (self.axis,)
 
     @property
-    def sigmas(self) -> tuple[float, ...]:
+    def noise_scales(self) -> tuple[float, ...]:
         return ()
 
     @property

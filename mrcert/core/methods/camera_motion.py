@@ -15,9 +15,10 @@ import torch
 from omegaconf import DictConfig
 from scipy.stats import norm
 
+from mrcert.core.axes import axis_index, is_translation, unit
 from mrcert.core.crop import CropBound
-from mrcert.core.geometry import axis_index, compose, is_translation, unit
-from mrcert.core.method import Certificate, Render, single_axis
+from mrcert.core.geometry import compose
+from mrcert.core.methods.base import Certificate, Render, single_axis
 from mrcert.core.sampling import SmoothedClassifier, Smoothing
 from mrcert.errors import ConfigError, MrcertError
 
@@ -29,17 +30,20 @@ class CameraMotionSmoothing(Smoothing):
 
     axes: tuple[str, ...]
     sigmas: tuple[float, ...]
+    """One sigma per axis, in the axis's unit (the config's ranges: the motion schema's checks)."""
 
     def __post_init__(self):
         if len(self.axes) != len(self.sigmas) or not self.axes:
             raise MrcertError(f"smoothing needs one sigma per axis, got axes {self.axes} and sigmas {self.sigmas}")
-        for a, s in zip(self.axes, self.sigmas, strict=True):
+        for a in self.axes:
             axis_index(a)
-            if not s > 0:
-                raise MrcertError(f"smoothing sigma for {a} must be > 0, got {s}")
         licensed(self.axes, self.sigmas)
 
     serves = frozenset({"train", "smooth", "attack", "sequential"})
+
+    @property
+    def noise_scales(self) -> tuple[float, ...]:
+        return self.sigmas
 
     @classmethod
     def from_config(cls, method: DictConfig | None, motion: DictConfig) -> CameraMotionSmoothing:

@@ -9,13 +9,13 @@ run exists, naming the method and what it serves. Three implementations:
 
 * the two smoothing methods, on the sampling engine of :mod:`mrcert.core.sampling` (vote
   counting, Cohen's CERTIFY and PREDICT, ABSTAIN): camera motion smoothing
-  (:class:`~mrcert.core.camera_motion.CameraMotionSmoothing`, ``method=camera_motion``) and
-  pixel-wise smoothing (:class:`~mrcert.core.pixelwise.PixelwiseSmoothing`, ``method=pixelwise``);
+  (:class:`~mrcert.core.methods.camera_motion.CameraMotionSmoothing`, ``method=camera_motion``) and
+  pixel-wise smoothing (:class:`~mrcert.core.methods.pixelwise.PixelwiseSmoothing`, ``method=pixelwise``);
 * deterministic verification by bound propagation
-  (:class:`~mrcert.core.verification.BoundPropagation`, ``method=bound_propagation``).
+  (:class:`~mrcert.core.methods.bound_propagation.BoundPropagation`, ``method=bound_propagation``).
 
 A further method is its own module (a subclass of :class:`Method`), one line of
-:data:`mrcert.core.methods.METHODS`, its schema in :mod:`mrcert.core.method_schemas` and its
+:data:`mrcert.core.methods.METHODS`, its schema in :mod:`mrcert.core.methods.schemas` and its
 YAML in ``conf/method/``; nothing in ``mrcert/infra/``, ``mrcert/tasks/`` or
 ``mrcert/reporting/`` names a method (``tests/test_method_plug.py``).
 """
@@ -31,8 +31,8 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import torch
 from omegaconf import DictConfig
 
+from mrcert.core.axes import AXES
 from mrcert.core.crop import CropBound
-from mrcert.core.geometry import AXES
 from mrcert.errors import ConfigError
 
 ABSTAIN = -1
@@ -136,9 +136,13 @@ class Method(ABC):
 
     axes: tuple[str, ...]
     """The motion axes it certifies against (one, or several for Theorem 1's combinations)."""
-    sigmas: tuple[float, ...]
-    """Its noise scales as the certify log records them, one per axis (motion units) or one
-    (pixel units); none for a method without noise."""
+
+    @property
+    @abstractmethod
+    def noise_scales(self) -> tuple[float, ...]:
+        """Its noise scales as the certify log records them (column ``sigma``), one per axis
+        (motion units) or one (pixel units); none for a method without noise."""
+
     serves: ClassVar[frozenset[str]] = frozenset()
     """What it serves besides ``task=certify``: keys of :data:`SERVICES`."""
     log_columns: ClassVar[tuple[str, ...]] = ()
@@ -165,7 +169,7 @@ class Method(ABC):
 
     @property
     def sigma_unit(self) -> str:
-        """The unit of :attr:`sigmas` (one per axis, joined by ``+``)."""
+        """The unit of :attr:`noise_scales` (one per axis, joined by ``+``)."""
         return ""
 
     # --- training (a method that serves "train") -----------------------------------------------

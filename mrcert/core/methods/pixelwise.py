@@ -20,10 +20,10 @@ import torch
 from omegaconf import DictConfig
 from scipy.stats import norm
 
-from mrcert.core.camera_motion import CameraMotionSmoothing
+from mrcert.core.axes import axis_index, unit
 from mrcert.core.crop import CropBound
-from mrcert.core.geometry import axis_index, is_translation, unit
-from mrcert.core.method import ABSTAIN, Certificate, SceneRender, single_axis
+from mrcert.core.methods.base import ABSTAIN, Certificate, SceneRender, single_axis
+from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.pose_bounds import piece_bounds
 from mrcert.core.sampling import SmoothedClassifier, Smoothing, image_generator
 from mrcert.core.sequential import lower_confidence_bound
@@ -117,22 +117,7 @@ class PixelwiseSmoothing(Smoothing):
     frames: int
 
     def __post_init__(self):
-        axis_index(self.axis)
-        if not self.sigma > 0:
-            raise ConfigError("method.sigma", self.sigma, "> 0 (the pixel noise, in units of the [0, 1] image)")
-        if not self.half_width > 0:
-            raise ConfigError("method.certify.half_width", self.half_width, "> 0 (the motion's unit)")
-        if int(self.frames) != self.frames or self.frames < 2:
-            raise ConfigError("method.certify.frames", self.frames, "an integer >= 2")
-        piece = 2 * self.half_width / (self.frames - 1)
-        if not is_translation(self.axis) and piece >= np.pi:
-            least = int(np.floor(2 * self.half_width / np.pi)) + 2  # pieces narrower than pi
-            raise ConfigError(
-                "method.certify.frames",
-                self.frames,
-                f"at least {least} for half_width={self.half_width} on {self.axis}: each piece between frames "
-                f"must be narrower than pi (here {piece:.6g} rad), the arc a rotation's bound covers",
-            )
+        axis_index(self.axis)  # its values' ranges: PixelwiseConfig's checks
 
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> PixelwiseSmoothing:
@@ -145,7 +130,7 @@ class PixelwiseSmoothing(Smoothing):
         return (self.axis,)
 
     @property
-    def sigmas(self) -> tuple[float, ...]:
+    def noise_scales(self) -> tuple[float, ...]:
         return (self.sigma,)
 
     @property

@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig
 
-from mrcert.core.method_schemas import BoundPropagationConfig, MethodConfig, PixelwiseConfig
+from mrcert.core.methods.schemas import BoundPropagationConfig, MethodConfig, PixelwiseConfig
 from mrcert.errors import ConfigError
 
 if TYPE_CHECKING:
-    from mrcert.core.method import Method
+    from mrcert.core.methods.base import Method
 
 
 @dataclass(frozen=True)
@@ -25,7 +25,7 @@ class Registered:
     """A method as configs and run keys see it."""
 
     target: str
-    """``"module:Class"``, a :class:`~mrcert.core.method.Method`."""
+    """``"module:Class"``, a :class:`~mrcert.core.methods.base.Method`."""
     schema: type
     """The dataclass its ``conf/method/<name>.yaml`` is checked against."""
     unkeyed: tuple[str, ...] = ()
@@ -40,11 +40,15 @@ class Registered:
 
 METHODS: dict[str, Registered] = {
     # Camera motion smoothing's parameters are all in motion.*: its method group adds nothing.
-    "camera_motion": Registered("mrcert.core.camera_motion:CameraMotionSmoothing", MethodConfig, unkeyed=("method",)),
+    "camera_motion": Registered(
+        "mrcert.core.methods.camera_motion:CameraMotionSmoothing", MethodConfig, unkeyed=("method",)
+    ),
     # Pixel noise: one model serves every axis.
-    "pixelwise": Registered("mrcert.core.pixelwise:PixelwiseSmoothing", PixelwiseConfig, unkeyed_model=("motion",)),
+    "pixelwise": Registered(
+        "mrcert.core.methods.pixelwise:PixelwiseSmoothing", PixelwiseConfig, unkeyed_model=("motion",)
+    ),
     # Deterministic: it certifies a model trained for another method (model.trained_for) or vanilla.
-    "bound_propagation": Registered("mrcert.core.verification:BoundPropagation", BoundPropagationConfig),
+    "bound_propagation": Registered("mrcert.core.methods.bound_propagation:BoundPropagation", BoundPropagationConfig),
 }
 
 FORMER_NAMES = {"motion": "camera_motion"}
