@@ -83,14 +83,14 @@ class Evaluation:
 
 def prepare(cfg: DictConfig) -> Evaluation:
     t = cfg.task
-    device = resolve_device(cfg.device)
-    method = build_method(cfg)
     bundle = load(cfg.data)
+    device = resolve_device(cfg.device)
+    model = load_classifier(cfg, bundle.classes, device)  # before the test samples: a bad checkpoint fails fast
+    method = build_method(cfg)
     downsampling = None
     if cfg.data.get("downsample"):
         downsampling = (int(cfg.motion.downsample.every_k), float(cfg.motion.downsample.voxel))
     samples = bundle.samples(downsampling=downsampling, crop=method.crop_bound(float(t.crop_sigmas)))
-    model = load_classifier(cfg, bundle.classes, device)
     indices = job_indices(len(samples), int(t.skip), t.get("max"), int(t.shard), int(t.num_shards))
     overlap = device.type == "cuda"  # rendering beside the model pays off when it runs on a GPU
     batch = batch_size(t.batch_size, device)
