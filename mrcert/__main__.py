@@ -34,7 +34,7 @@ from mrcert.tasks.inputs import check_inputs
 log = logging.getLogger("mrcert")
 
 OmegaConf.register_new_resolver(
-    "mrcert_task_help", lambda: "\n".join(f"  {n:<10} {t.summary}" for n, t in TASKS.items()), replace=True
+    "mrcert_task_help", lambda: "\n".join(f"  {n:<10} {TASKS.summary(n)}" for n in TASKS), replace=True
 )
 
 

@@ -225,6 +225,19 @@ def test_help_lists_the_tasks(tmp_path):
     )
 
 
+def test_help_and_the_config_s_schemas_import_no_torch():
+    """``mrcert --help`` lists every task (its summary read from its module's source) and the
+    config's schemas and checks load, all without importing torch (seconds of start-up)."""
+    code = (
+        "import sys; sys.argv = ['mrcert', '--help']\n"
+        "import mrcert.infra.config, mrcert.infra.schema, mrcert.__main__ as m\n"
+        "try:\n    m.main()\nexcept SystemExit:\n    pass\n"
+        "print('torch' in sys.modules, 'torchvision' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert "  certify " in done.stdout and done.stdout.strip().endswith("False False"), done.stdout[-500:]
+
+
 def test_the_ui_task_refuses_a_tracking_server_and_leaves_no_run_or_folder(tmp_path):
     proc = mrcert(["task=ui", "tracking=server"], tmp_path, check=False)
     assert proc.returncode == 2 and "task=ui serves a SQLite store" in proc.stderr

@@ -14,6 +14,7 @@ is asked for, never by this module.
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
+from pathlib import Path
 from typing import Any, ClassVar
 
 from omegaconf import DictConfig, OmegaConf
@@ -83,6 +84,20 @@ class Registry(Mapping[str, Task]):
             self._tasks[name] = _load(name, target)
         return self._tasks[name]
 
+    def summary(self, name: str) -> str:
+        """The task's one line for ``mrcert --help`` (its class's ``summary``), read from its
+        module's source when it is a literal there, so that listing the tasks imports none of
+        them (nor torch); otherwise from the class."""
+        import importlib.util
+
+        module, _, attr = (_target(name) or "").rpartition(".")
+        spec = importlib.util.find_spec(module) if module else None
+        if spec is not None and spec.origin and spec.origin.endswith(".py"):
+            found = _literal_summary(Path(spec.origin).read_text(), attr)
+            if found is not None:
+                return found
+        return self[name].summary
+
     def __contains__(self, name: object) -> bool:
         return isinstance(name, str) and (name in self._tasks or _target(name) is not None)
 
@@ -91,6 +106,19 @@ class Registry(Mapping[str, Task]):
 
     def __len__(self) -> int:
         return len(set(self._tasks) | set(_names()))
+
+
+def _literal_summary(source: str, cls: str) -> str | None:
+    """``summary = "..."`` in class ``cls`` of a module's ``source``, if written as a literal."""
+    import ast
+
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.ClassDef) and node.name == cls:
+            for item in node.body:
+                named = isinstance(item, ast.Assign) and [getattr(t, "id", None) for t in item.targets] == ["summary"]
+                if named and isinstance(item.value, ast.Constant) and isinstance(item.value.value, str):
+                    return item.value.value
+    return None
 
 
 def _names() -> list[str]:
