@@ -91,6 +91,7 @@ def test_a_half_made_store_is_explained_in_one_line(tmp_path):
     assert f"the MLflow store {db} is incomplete" in line and f"mv {db} {db}.broken" in line
 
 
+@pytest.mark.slow
 def test_a_full_disk_while_creating_the_store_is_one_line(tmp_path):
     """No room for the store (here a 200 KB file size limit, which SQLite
     meets as a full disk would be met): one line naming the store and the fix, nothing half
@@ -137,6 +138,7 @@ def test_resume_never_mixes_two_models_in_one_run(checkpoints, reference, tmp_pa
     assert list(killed_log.parent.glob("resumed/*/*.log"))  # the resuming process's log is kept with the run
 
 
+@pytest.mark.slow
 def test_a_run_folder_reused_by_another_model_never_mixes_rows(checkpoints, reference, tmp_path):
     """Certify model a into a folder, kill it after a row, certify model b
     into the same folder, then rerun a's command: each run's log holds only its own rows."""
@@ -270,6 +272,7 @@ def test_a_store_locked_by_a_stopped_process_is_one_line(tmp_path):
     assert not store_runs(tmp_path)
 
 
+@pytest.mark.slow
 def test_a_resumed_run_counts_its_working_time_not_the_time_it_was_down(checkpoints, tmp_path):
     """The time table's run time is what the run's processes worked: a run interrupted by
     Ctrl-C and resumed after a pause of ``down`` seconds reports at most its start-to-end

@@ -42,6 +42,7 @@ def test_a_damaged_row_left_in_a_killed_run_s_log_is_never_adopted(checkpoints, 
     assert "1\t1\t1\t5.0" in aside.read_text()
 
 
+@pytest.mark.slow
 def test_sigterm_is_one_line_and_the_run_is_killed_with_its_time(checkpoints, tmp_path):
     """SIGTERM (``kill``, a scheduler's stop) is handled as Ctrl-C: one line, exit 143, the run
     KILLED with its working time logged, and the same command finishes it."""

@@ -112,6 +112,7 @@ def test_reading_a_store_never_writes_it(old_store):
     assert db.read_bytes() == before
 
 
+@pytest.mark.slow
 def test_a_run_interrupted_before_content_keys_resumes_with_the_rows_it_logged(old_store):
     folder = old_store / "runs" / "interrupted"
     logged = (folder / "certify.tsv").read_text().splitlines()

@@ -42,6 +42,7 @@ def checkpoint(out: Path, name: str) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_rerunning_a_sweep_keeps_checkpoint_lookup_on_the_trained_model(tmp_path):
     for _ in range(2):  # `make demo` twice: the second sweep skips its jobs but makes a parent run
         proc = run_cli(["-m", *DEMO, "task=train"], tmp_path)
@@ -97,6 +98,7 @@ def row_sealed(out: Path) -> bool:
     return any(int(value.split()[0]) == logs[0].stat().st_size for (value,) in found)
 
 
+@pytest.mark.slow
 def test_a_run_held_by_a_live_process_is_never_resumed_and_a_killed_one_is(trained, tmp_path):
     args = [*TINY, "task=certify", "task.n0=8", "task.n=1500", "task.max=2", "task.skip=1",
             f"model.checkpoint={checkpoint(trained, 'best.pt')}"]  # fmt: skip
