@@ -277,6 +277,8 @@ def test_the_method_keys_its_runs_and_motion_smoothing_keeps_the_old_keys(tmp_pa
         (["method.name=bogus"], "method.name"),
         (["task=certify", "task.sequential=true", "method=pixelwise"], "task.sequential"),
         (["method=pixelwise", "motion=txyz_rz"], "motion"),
+        (["method=pixelwise", "motion=rx", "motion.axis=rx+ry"], "motion.axis"),  # several axes joined: one line
+        (["method=bound_propagation", "motion=rx", "motion.axis=rx+ry"], "motion.axis"),
         (["method=pixelwise", "method.certify.frames=1"], "method.certify.frames"),
         (["method=pixelwise", "method.certify.half_width=0"], "method.certify.half_width"),
         (

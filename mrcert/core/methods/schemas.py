@@ -11,7 +11,7 @@ from typing import Any
 
 from omegaconf import MISSING
 
-from mrcert.core.axes import is_translation
+from mrcert.core.axes import AXES, is_translation
 from mrcert.core.checks import POSITIVE, Check, checked, integer, number, one_of
 from mrcert.errors import ConfigError
 
@@ -26,9 +26,11 @@ def at_least(least: int) -> Check:
 
 
 def _single_axis(root: Mapping[str, Any]) -> str | None:
-    """The motion's one axis, or None for a multi-axis motion (which the method refuses when built)."""
+    """The motion's one axis, or None for a multi-axis motion or several axes joined by '+'
+    (which the method refuses when built, naming the key)."""
     motion = root.get("motion", {})
-    return None if motion.get("axes") else motion.get("axis")
+    axis = motion.get("axis")
+    return None if motion.get("axes") or axis not in AXES else axis
 
 
 @dataclass
