@@ -80,8 +80,10 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     try:
         mrcert_config.validate(cfg)
         task = TASKS.of(cfg)
-        if not task.tracked:
-            return task.run(cfg, None)
+        if not task.tracked:  # outside MLflow runs: its launch leaves no folder
+            result = task.run(cfg, None)
+            discard_launch(output_dir)
+            return result
         cfg, ident = bind(cfg)
         with key_lock(cfg, ident):  # lookup and creation of this key's run: one job at a time
             decision = decide(cfg, ident, task.reusable)
@@ -122,10 +124,7 @@ def _user_error(exc: BaseException, store: str = "") -> str | None:
 def _hydra_main(cfg: DictConfig) -> dict[str, Any]:
     hc = HydraConfig.get()
     try:
-        result = run_task(cfg, Path(hc.runtime.output_dir))
-        if not TASKS.of(cfg).tracked:
-            discard_launch(Path(hc.runtime.output_dir))  # it made no run: its launch leaves no folder
-        return result
+        return run_task(cfg, Path(hc.runtime.output_dir))
     except Exception as exc:
         message = _user_error(exc, str(cfg.tracking.uri))
         if message is None or hc.mode == RunMode.MULTIRUN:

@@ -159,10 +159,11 @@ def trained_for(data: dict) -> dict | None:
     if not isinstance(value, dict) or "name" not in value:
         raise ConfigError("model.trained_for", value, allowed)
     try:
-        schema = OmegaConf.structured(registered(str(value["name"])).schema)
+        method = registered(str(value["name"]))
     except ConfigError as exc:
         raise ConfigError("model.trained_for.name", value["name"], exc.allowed) from None
-    check_values(registered(str(value["name"])).schema, value, "model.trained_for")
+    check_values(method.schema, value, "model.trained_for")
+    schema = OmegaConf.structured(method.schema)
     try:
         merged = OmegaConf.merge(schema, value)
     except Exception:  # noqa: BLE001 - an unknown key or a value of the wrong type

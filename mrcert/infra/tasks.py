@@ -32,9 +32,9 @@ class Task:
     identity: ClassVar[Identity] = Identity(defines=("task",))
     """Which config keys define the task's result (see :mod:`mrcert.infra.identity`)."""
     reusable: ClassVar[bool] = True
+    """Whether a FINISHED run of the same run key may stand in for a new one (``skip_finished``)."""
     tracked: ClassVar[bool] = True
     """Whether it runs inside an MLflow run of its own (``task=ui`` serves the store and adds no run to it)."""
-    """Whether a FINISHED run of the same run key may stand in for a new one (``skip_finished``)."""
     log: ClassVar[str | None] = None
     """The per-image log the task writes (in its run folder and artifacts), for tables and shards."""
     columns: ClassVar[tuple[str, ...]] = ()

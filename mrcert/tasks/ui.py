@@ -1,7 +1,7 @@
 """``task=ui``: the MLflow UI on this store, opened on the experiment's runs page as the tables'
 links point there; with ``task.screenshot=PNG``, that page as a fresh headless Chromium shows it
-(a user's first visit), after which the UI stops. The task reads the store and writes nothing
-to it: it runs outside any MLflow run.
+(a user's first visit), after which the UI stops. It runs outside any MLflow run: the store
+gains no run from it.
 """
 
 from __future__ import annotations
