@@ -10,6 +10,7 @@ import numba
 import numpy as np
 import torch
 
+from mrcert.core.axes import axis_index, is_translation
 from mrcert.core.projection import rotations, to_camera
 
 
@@ -42,6 +43,19 @@ class CropBound:
     translation: tuple[float, float, float]
     rotation: float = 0.0
     roll_only: bool = True
+
+    @classmethod
+    def covering(cls, extents: dict[str, float]) -> CropBound:
+        """The bound for motions of at most ``extents[axis]`` on each of its axes (a translation
+        in metres; the rotation axis, at most one, in radians)."""
+        box = [0.0, 0.0, 0.0]
+        rotation, about = 0.0, None
+        for axis, extent in extents.items():
+            if is_translation(axis):
+                box[axis_index(axis)] = extent
+            else:
+                rotation, about = extent, axis
+        return cls(tuple(box), rotation, roll_only=about in (None, "rz"))
 
     def contains(self, motions: torch.Tensor) -> torch.Tensor:
         box = torch.tensor(self.translation, dtype=motions.dtype, device=motions.device)

@@ -31,7 +31,7 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.axes import AXES
+from mrcert.core.axes import AXES, axis_index, unit
 from mrcert.core.crop import CropBound
 from mrcert.errors import ConfigError
 
@@ -213,3 +213,36 @@ class Method(ABC):
     def crop_bound(self, sigmas: float) -> CropBound:
         """The motions a test sample's exact crop must cover (``sigmas``: the evaluation's
         ``task.crop_sigmas``)."""
+
+
+class WholeInterval:
+    """For a method that certifies the whole interval ``[-half_width, half_width]`` on one
+    ``axis`` or nothing (its dataclass fields ``axis`` and ``half_width``): a certificate's
+    radius is ``half_width`` or 0, and the exact crop covers the interval."""
+
+    def __post_init__(self):
+        axis_index(self.axis)  # its values' ranges: the method's config schema
+
+    @classmethod
+    def interval_axis(cls, motion: DictConfig, name: str) -> str:
+        """``motion.axis``, refused in one line when the motion has several (``method=name``)."""
+        if motion.get("axes"):
+            raise ConfigError("motion", motion.get("axis"), f"one axis: method={name} certifies an interval on one")
+        return single_axis(motion)
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return (self.axis,)
+
+    @property
+    def region_unit(self) -> str:
+        """The interval's half-width, in the axis's unit."""
+        return unit(self.axis)
+
+    def judged_at(self, radius: float) -> float:
+        """The interval's half-width: all a certificate can reach."""
+        return self.half_width
+
+    def crop_bound(self, sigmas: float) -> CropBound:
+        """Every motion of the interval."""
+        return CropBound.covering({self.axis: self.half_width})

@@ -34,7 +34,6 @@ import torch
 from omegaconf import DictConfig
 
 from mrcert.core.axes import axis_index, unit
-from mrcert.core.crop import CropBound
 from mrcert.core.methods.base import (
     ABSTAIN,
     BaseClassifier,
@@ -42,13 +41,12 @@ from mrcert.core.methods.base import (
     CertifyRequest,
     Method,
     SceneRender,
-    single_axis,
+    WholeInterval,
 )
-from mrcert.core.methods.camera_motion import CameraMotionSmoothing
 from mrcert.core.models import predicted
 from mrcert.core.pose_bounds import image_boxes
 from mrcert.core.propagation import BoundNetwork
-from mrcert.errors import ConfigError, MrcertError
+from mrcert.errors import MrcertError
 
 SEARCH_STEPS = 8
 """Steps of the local search for a falsifying pose after the evenly sampled ones."""
@@ -73,7 +71,7 @@ def float_poses(start: float, end: float, limit: int) -> np.ndarray | None:
 
 
 @dataclass(frozen=True)
-class BoundPropagation(Method):
+class BoundPropagation(WholeInterval, Method):
     """The method (module docstring); its certifier is :class:`IntervalVerifier`."""
 
     axis: str
@@ -87,17 +85,10 @@ class BoundPropagation(Method):
 
     log_columns: ClassVar[tuple[str, ...]] = ("outcome", "pieces", "bound_passes", "forward_passes", "counterexample")
 
-    def __post_init__(self):
-        axis_index(self.axis)  # its values' ranges: BoundPropagationConfig's checks
-
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> BoundPropagation:
-        if motion.get("axes"):
-            raise ConfigError(
-                "motion", motion.get("axis"), "one axis: method=bound_propagation certifies an interval on one"
-            )
         return cls(
-            single_axis(motion),
+            cls.interval_axis(motion, "bound_propagation"),
             float(method.half_width),
             str(method.relaxation),
             method.max_pieces,
@@ -108,30 +99,14 @@ class BoundPropagation(Method):
         )
 
     @property
-    def axes(self) -> tuple[str, ...]:
-        return (self.axis,)
-
-    @property
     def noise_scales(self) -> tuple[float, ...]:
         return ()
-
-    @property
-    def region_unit(self) -> str:
-        return unit(self.axis)
-
-    def judged_at(self, radius: float) -> float:
-        """The interval's half-width: all a certificate can reach."""
-        return self.half_width
 
     def region(self) -> str:
         return (
             f"every pose |{self.axis}| <= {self.half_width:g} {unit(self.axis)} when R > 0, for the base classifier "
             f"itself and with certainty (bound propagation, {self.relaxation}); R is {self.half_width:g} or 0"
         )
-
-    def crop_bound(self, sigmas: float) -> CropBound:
-        """The interval's motions: motion smoothing's bound for one standard deviation of ``half_width``."""
-        return CameraMotionSmoothing((self.axis,), (self.half_width,)).crop_bound(1.0)
 
     def certifier(self, base: BaseClassifier) -> IntervalVerifier:
         return IntervalVerifier(self, base)

@@ -137,14 +137,7 @@ class CameraMotionSmoothing(Smoothing):
 
     def crop_bound(self, sigmas: float) -> CropBound:
         """The exact-crop bound covering ``sigmas`` standard deviations on every smoothed axis."""
-        box = [0.0, 0.0, 0.0]
-        rotation, axis = 0.0, None
-        for a, s in zip(self.axes, self.sigmas, strict=True):
-            if is_translation(a):
-                box[axis_index(a)] = sigmas * s
-            else:
-                rotation, axis = sigmas * s, a
-        return CropBound(tuple(box), rotation, roll_only=axis in (None, "rz"))
+        return CropBound.covering({a: sigmas * s for a, s in zip(self.axes, self.sigmas, strict=True)})
 
 
 ORTHOGONAL = {"rx": ("ty", "tz"), "ry": ("tx", "tz"), "rz": ("tx", "ty")}

@@ -21,13 +21,11 @@ from omegaconf import DictConfig
 from scipy.stats import norm
 
 from mrcert.core.axes import axis_index, unit
-from mrcert.core.crop import CropBound
-from mrcert.core.methods.base import ABSTAIN, Certificate, SceneRender, single_axis
-from mrcert.core.methods.camera_motion import CameraMotionSmoothing
+from mrcert.core.methods.base import ABSTAIN, Certificate, SceneRender, WholeInterval
 from mrcert.core.pose_bounds import piece_bounds
 from mrcert.core.sampling import SmoothedClassifier, Smoothing, image_generator
 from mrcert.core.sequential import lower_confidence_bound
-from mrcert.errors import ConfigError, MrcertError
+from mrcert.errors import MrcertError
 
 NOISE_BLOCK = 16
 """Pixel-noise draws come in blocks of this many images, each block from its own seeded
@@ -104,7 +102,7 @@ def piece_margin(radii, left: np.ndarray, right: np.ndarray, reach: float) -> fl
 
 
 @dataclass(frozen=True)
-class PixelwiseSmoothing(Smoothing):
+class PixelwiseSmoothing(WholeInterval, Smoothing):
     """Pixel-wise smoothing (``method=pixelwise``): Gaussian pixel noise of ``sigma`` trains the
     augmented model and smooths it at ``frames`` frames of ``[-half_width, half_width]`` on
     ``axis``; a test sample is certified for the whole interval or not at all (its radius is
@@ -116,18 +114,14 @@ class PixelwiseSmoothing(Smoothing):
     half_width: float
     frames: int
 
-    def __post_init__(self):
-        axis_index(self.axis)  # its values' ranges: PixelwiseConfig's checks
-
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> PixelwiseSmoothing:
-        if motion.get("axes"):
-            raise ConfigError("motion", motion.get("axis"), "one axis: method=pixelwise certifies an interval on one")
-        return cls(single_axis(motion), float(method.sigma), float(method.certify.half_width), method.certify.frames)
-
-    @property
-    def axes(self) -> tuple[str, ...]:
-        return (self.axis,)
+        return cls(
+            cls.interval_axis(motion, "pixelwise"),
+            float(method.sigma),
+            float(method.certify.half_width),
+            method.certify.frames,
+        )
 
     @property
     def noise_scales(self) -> tuple[float, ...]:
@@ -159,27 +153,14 @@ class PixelwiseSmoothing(Smoothing):
         return "intensity"
 
     @property
-    def region_unit(self) -> str:
-        """The interval's half-width, in the axis's unit."""
-        return unit(self.axis)
-
-    @property
     def sigma_unit(self) -> str:
         return "intensity"
-
-    def judged_at(self, radius: float) -> float:
-        """The interval's half-width: all a certificate can reach."""
-        return self.half_width
 
     def region(self) -> str:
         return (
             f"the whole interval |{self.axis}| <= {self.half_width:g} {unit(self.axis)} when R > 0 (pixel-wise "
             f"smoothing, {self.frames} frames, pixel sigma {self.sigma:g}); R is {self.half_width:g} or 0"
         )
-
-    def crop_bound(self, sigmas: float) -> CropBound:
-        """The interval's motions: motion smoothing's bound for one standard deviation of ``half_width``."""
-        return CameraMotionSmoothing((self.axis,), (self.half_width,)).crop_bound(1.0)
 
     def reach(self, n: int, alpha: float) -> float:
         """The largest radius a frame can be certified for: all ``n`` votes for one class, at
