@@ -63,6 +63,24 @@ def test_every_image_of_a_piece_lies_in_its_box_on_every_axis(axis, half_width, 
     assert ((high - low).max(1) == 0).mean() > (0.2 if near_plane else 0.5)
 
 
+@pytest.mark.parametrize("axis", ["tz", "rz"])
+def test_a_roll_keeps_depth_ties_as_a_translation_does(axis):
+    """Along a roll, as along a translation, every depth stays its reference depth, so exact
+    copies of points in other colours never show (the staying point of lower rank wins each
+    tie): micro-radian pieces on either side of no motion keep every pixel to one value, and
+    every sampled pose's image lies inside its piece's box."""
+    points, colors = _tied_occluding_scene(False)
+    sample = TestSample.build(
+        points.numpy(), colors.numpy(), PAPER_K, H, W, label=0, bound=BoundPropagation(axis, 1e-6).crop_bound(1.0)
+    )
+    edges = np.array([-1e-6, 0.0, 1e-6])
+    crop, crop_colors, rank = sample.cloud_for(piece_poses(axis, -1e-6, 1e-6, 0))
+    low, high = image_boxes(crop, crop_colors, sample.K, axis, edges[:-1], edges[1:], H, W, sample.background, rank)
+    for k in range(2):
+        assert outside(sample.renderer()(piece_poses(axis, edges[k], edges[k + 1], 300, seed=k)), low[k], high[k]) == 0
+    assert ((high - low).max(1) == 0).all()
+
+
 @pytest.mark.parametrize("x", [1e-12, 0.0, -1e-12])
 def test_points_on_the_principal_axis_keep_their_box(x):
     """Points a hair off the principal axis (or on it) project onto the column edge u = cx for

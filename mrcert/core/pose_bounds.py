@@ -5,7 +5,7 @@ finds, per point, the box of pixels its path can cross (the path of a translatio
 segment, that of a rotation an arc, held in a triangle) and, per pixel, whether some point
 stays in it throughout (so that it is never empty) and how deep such a point can be. A point
 whose path crosses a pixel may show there unless a staying point is always strictly nearer,
-or -- along a translation, where two points of equal depth keep equal depths -- at most as far
+or -- along a translation or a roll, where two points of equal depth keep equal depths -- at most as far
 in the reference frame and of lower rank (it then wins every tie). The colours a pixel can take
 anywhere in the piece are therefore those of the points that may show there, plus the
 background unless a point stays in it. Points that may cross the camera plane may land
@@ -236,14 +236,15 @@ def _piece_reach(P, rank, a0, a1, j, translation, fx, fy, cx, cy, height, width,
 
 
 @numba.njit(cache=True, nogil=True)
-def _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, translation):  # pragma: no cover - compiled
+def _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, depths_kept):  # pragma: no cover - compiled
     """Whether point ``i``, whose path crosses pixel ``p``, can be the one seen there."""
     if zlow[i] > cover[p]:  # a point staying here is always nearer
         return False
-    # Along a translation every depth is its reference depth less the same amount (exactly 0 or
-    # t on the axis), so order and ties are kept: no deeper or tied point of higher rank ever
-    # beats the staying point.
-    return not (translation and P[i, 2] >= tie_z[p] and rank[i] > tie_rank[p])
+    # With ``depths_kept`` every depth is its reference depth less the same amount at every pose
+    # (along a translation: exactly 0 or t on the axis; along a roll: 0, the rotation's depth row
+    # being exactly (0, 0, 1)), so order and ties are kept: no deeper or tied point of higher
+    # rank ever beats the staying point.
+    return not (depths_kept and P[i, 2] >= tie_z[p] and rank[i] > tie_rank[p])
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -264,7 +265,7 @@ def _distance_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, translation):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, translation or j == 2):
                         continue
                     dl, dr = 0.0, 0.0
                     for ch in range(nc):
@@ -308,7 +309,7 @@ def _box_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, translation):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, translation or j == 2):
                         continue
                     for ch in range(nc):
                         lo[ch, p] = min(lo[ch, p], colors[i, ch])
