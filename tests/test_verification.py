@@ -76,8 +76,9 @@ def test_a_roll_keeps_depth_ties_as_a_translation_does(axis):
     edges = np.array([-1e-6, 0.0, 1e-6])
     crop, crop_colors, rank = sample.cloud_for(piece_poses(axis, -1e-6, 1e-6, 0))
     low, high = image_boxes(crop, crop_colors, sample.K, axis, edges[:-1], edges[1:], H, W, sample.background, rank)
+    render = sample.renderer()
     for k in range(2):
-        assert outside(sample.renderer()(piece_poses(axis, edges[k], edges[k + 1], 300, seed=k)), low[k], high[k]) == 0
+        assert outside(render(piece_poses(axis, edges[k], edges[k + 1], 300, seed=k)), low[k], high[k]) == 0
     assert ((high - low).max(1) == 0).all()
 
 

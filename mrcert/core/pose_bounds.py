@@ -5,10 +5,10 @@ finds, per point, the box of pixels its path can cross (the path of a translatio
 segment, that of a rotation an arc, held in a triangle) and, per pixel, whether some point
 stays in it throughout (so that it is never empty) and how deep such a point can be. A point
 whose path crosses a pixel may show there unless a staying point is always strictly nearer,
-or -- along a translation or a roll, where two points of equal depth keep equal depths -- at most as far
-in the reference frame and of lower rank (it then wins every tie). The colours a pixel can take
-anywhere in the piece are therefore those of the points that may show there, plus the
-background unless a point stays in it. Points that may cross the camera plane may land
+or -- along a translation or a roll, where two points of equal depth keep equal depths -- at
+most as far in the reference frame and of lower rank (it then wins every tie). The colours a
+pixel can take anywhere in the piece are therefore those of the points that may show there,
+plus the background unless a point stays in it. Points that may cross the camera plane may land
 anywhere; extents are widened so that rounding never moves a point out of its box: by
 :data:`PIXEL_SLACK` pixels, or along a translation by :data:`ROUNDING` (module constant's note).
 
@@ -53,6 +53,16 @@ def _scene(points, colors, K, rank):
     return xyz, table, ranks, (fx, fy, cx, cy)
 
 
+def _axis_terms(axis: str) -> tuple[int, bool, bool]:
+    """The kernels' view of ``axis``: its index among the translations or the rotations, whether
+    it is a translation, and whether every depth stays its reference depth less one amount at
+    every pose (along a translation: exactly 0 or t on the axis; along a roll: 0, the rotation's
+    depth row being exactly (0, 0, 1), made on the CPU for every device), so that the order and
+    the ties of depths are kept."""
+    i, translation = axis_index(axis), is_translation(axis)
+    return (i if translation else i - 3), translation, translation or axis == "rz"
+
+
 def _check_rotation(axis: str, widest: float) -> None:
     if not is_translation(axis) and widest >= np.pi:
         raise ValueError(f"a rotation piece must be narrower than pi (its arc's bound); got {widest}")
@@ -95,7 +105,7 @@ def piece_bounds(
     pieces = len(amounts) - 1
     left, right = np.empty(pieces), np.empty(pieces)
     maps = np.empty((2, pieces if per_pixel else 0, height * width))
-    j, translation = (i if is_translation(axis) else i - 3), is_translation(axis)
+    j, translation, depths_kept = _axis_terms(axis)
     _distance_kernel(
         xyz,
         ranks,
@@ -103,6 +113,7 @@ def piece_bounds(
         amounts,
         j,
         translation,
+        depths_kept,
         *camera,
         height,
         width,
@@ -134,7 +145,7 @@ def image_boxes(
     of the piece; ``points``, ``colors``, ``K``, ``background`` and ``rank`` as for
     :func:`piece_bounds`. Extents are widened by :data:`ROUNDING` along a translation, by
     :data:`PIXEL_SLACK` along a rotation."""
-    i = axis_index(axis)
+    j, translation, depths_kept = _axis_terms(axis)
     starts = np.ascontiguousarray(np.asarray(starts, np.float64).reshape(-1))
     ends = np.ascontiguousarray(np.asarray(ends, np.float64).reshape(-1))
     if len(starts) != len(ends) or not np.all(ends >= starts):
@@ -144,11 +155,11 @@ def image_boxes(
     xyz, table, ranks, camera = _scene(points, colors, K, rank)
     low = np.empty((len(starts), table.shape[1], height * width))
     high = np.empty_like(low)
-    j, translation = (i if is_translation(axis) else i - 3), is_translation(axis)
     slack = (0.0, ROUNDING) if translation else (PIXEL_SLACK, 0.0)
     _box_kernel(
-        xyz, ranks, table, starts, ends, j, translation, *camera, height, width, *slack, float(background), low, high
-    )
+        xyz, ranks, table, starts, ends, j, translation, depths_kept, *camera, height, width, *slack,
+        float(background), low, high,
+    )  # fmt: skip
     shape = (len(starts), table.shape[1], height, width)
     return low.reshape(shape), high.reshape(shape)
 
@@ -240,17 +251,16 @@ def _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, depths_kept):  # prag
     """Whether point ``i``, whose path crosses pixel ``p``, can be the one seen there."""
     if zlow[i] > cover[p]:  # a point staying here is always nearer
         return False
-    # With ``depths_kept`` every depth is its reference depth less the same amount at every pose
-    # (along a translation: exactly 0 or t on the axis; along a roll: 0, the rotation's depth row
-    # being exactly (0, 0, 1)), so order and ties are kept: no deeper or tied point of higher
-    # rank ever beats the staying point.
+    # With ``depths_kept`` (:func:`_axis_terms`) order and ties of depths are kept: no deeper or
+    # tied point of higher rank ever beats the staying point.
     return not (depths_kept and P[i, 2] >= tie_z[p] and rank[i] > tie_rank[p])
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _distance_kernel(
-    P, rank, colors, amounts, j, translation, fx, fy, cx, cy, height, width, background, frames, left, right, maps
-):  # pragma: no cover - compiled
+    P, rank, colors, amounts, j, translation, depths_kept, fx, fy, cx, cy, height, width, background, frames, left,
+    right, maps
+):  # pragma: no cover - compiled  # fmt: skip
     n, nc = P.shape[0], colors.shape[1]
     hw = height * width
     for k in numba.prange(len(amounts) - 1):
@@ -265,7 +275,7 @@ def _distance_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, translation or j == 2):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, depths_kept):
                         continue
                     dl, dr = 0.0, 0.0
                     for ch in range(nc):
@@ -293,8 +303,9 @@ def _distance_kernel(
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _box_kernel(
-    P, rank, colors, starts, ends, j, translation, fx, fy, cx, cy, height, width, slack, relative, background, low, high
-):  # pragma: no cover - compiled
+    P, rank, colors, starts, ends, j, translation, depths_kept, fx, fy, cx, cy, height, width, slack, relative,
+    background, low, high
+):  # pragma: no cover - compiled  # fmt: skip
     n, nc = P.shape[0], colors.shape[1]
     hw = height * width
     for k in numba.prange(len(starts)):
@@ -309,7 +320,7 @@ def _box_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, translation or j == 2):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, depths_kept):
                         continue
                     for ch in range(nc):
                         lo[ch, p] = min(lo[ch, p], colors[i, ch])
