@@ -129,6 +129,7 @@ def motion_in_scale(motion) -> bool:
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(changes=st.dictionaries(st.sampled_from(KEYS), VALUES, min_size=1, max_size=4))
 @example(changes={"task.shard": 1, "device": None})  # a bad shard is reported before a bad device
+@example(changes={"task.shard": "0"})  # the schema holds it as the integer 0: a valid shard
 def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, changes):
     """Each value is refused by its type as the config is composed (a value its schema's type
     cannot hold), or else by validation exactly when it is not allowed."""
@@ -142,9 +143,9 @@ def test_validation_rejects_exactly_the_values_that_are_not_allowed(base_cfg, ch
     stored = {k: v if v == "???" else OmegaConf.select(cfg, k) for k, v in changes.items()}  # as the schema holds it
     stored = {k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v for k, v in stored.items()}
     bad = {k for k, v in stored.items() if v == "???" or not ALLOWED[k](v)}
-    shards = changes.get("task.num_shards", 1)
-    both_valid = "task.shard" in changes and not {"task.shard", "task.num_shards"} & bad
-    if both_valid and changes["task.shard"] >= shards:
+    shards = stored.get("task.num_shards", 1)
+    both_valid = "task.shard" in stored and not {"task.shard", "task.num_shards"} & bad
+    if both_valid and stored["task.shard"] >= shards:
         bad.add("task.shard")  # a shard outside [0, num_shards), whatever else is bad
     scale = {"motion.sigma", "motion.radius", "motion.radius_step"}
     if not any(k.startswith("motion.") for k in bad) and not motion_in_scale(cfg.motion):
