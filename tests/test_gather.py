@@ -121,3 +121,27 @@ def test_a_store_that_is_not_one_is_refused_before_any_run(tmp_path):
     proc = run_cli(["task=gather", f"task.store={tmp_path}"], tmp_path / "out")
     assert proc.returncode != 0 and f"task.store='{tmp_path}' is not an mrcert store" in proc.stderr
     assert not (tmp_path / "out" / "mlflow.db").exists()
+
+
+def test_a_store_brought_home_without_its_resume_checkpoints_fills_the_same_cells(gpu_store, tmp_path):
+    # A GPU store packed without last.pt (the resume state, twice best.pt's size): the train run is
+    # gathered without it, named in one line; its model loads and the cells are the ones there.
+    light = tmp_path / "light"
+    gather(light, gpu_store)  # a store of its own whose artifacts are its own files
+    (last,) = (light / "mlartifacts").rglob("checkpoints/last.pt")
+    last.unlink()
+    here = tmp_path / "here"
+    proc = run_cli(["task=gather", f"task.store={light}"], here)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (line,) = [s for s in proc.stdout.splitlines() if s.startswith("gathered without")]
+    assert line.startswith("gathered without its last.pt: run ") and "not gathered" not in proc.stdout
+    _, copies = runs_of(here)
+    assert sorted(r.data.tags.get("mrcert.task") for r in copies.values() if GATHERED in r.data.tags) == [
+        "certify",
+        "gather",
+        "train",
+    ]
+    ours = paper_tables.TABLE3.build(index(here, "paper"), name="t")
+    assert ours.equals(paper_tables.TABLE3.build(index(gpu_store, "paper"), name="t")) and ours.notna().any().any()
+    cell = index(here, "paper").cell("reproduce_paper", ("motion=tz", "model.variant=vanilla"), paper_tables.CERTIFIED)
+    assert read_checkpoint(local_checkpoint(cell.cfg.model.checkpoint))["arch"] == "small_cnn"

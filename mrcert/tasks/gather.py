@@ -13,7 +13,10 @@ parent run (``mlflow.parentRunId``), pointed at the parent's copy so that the sw
 did there. Runs from a store written before models were named by content are migrated once
 copied (:mod:`mrcert.infra.key_migration`); one whose keys cannot be recomputed keeps them and
 is counted in ``kept_keys``. A run whose sealed files (:mod:`mrcert.infra.seals`) are not what it
-sealed is not copied at all: one line names it and the file, and it is counted in ``refused``.
+sealed is not copied at all: one line names it and the file, and it is counted in ``refused``. A
+sealed file that is absent (a store brought home without its resume checkpoints, ``last.pt``:
+90 MB for each ResNet-18) is no such file: the run is copied with what it has, one line names
+what it lacks, and it is counted in ``without_artifacts``, as a run whose artifacts are all gone.
 
 A store moved after its runs were made (copied off the machine that made them) is read from
 its folder: a run's artifacts are taken from ``<source>/mlartifacts/<run id>/artifacts`` when
@@ -84,23 +87,26 @@ def _artifacts(client, run, folder: Path | None, into: Path) -> bool:
         return False
 
 
-def _refusal(run, files: Path) -> str | None:
-    """Why a source run's artifacts (copied into ``files``) are not what the run sealed, or None."""
+def _checked(run, files: Path) -> tuple[str | None, list[str]]:
+    """Why a source run's artifacts (copied into ``files``) are not what the run sealed (or None),
+    and the sealed files it lacks."""
+    absent = []
     for name in (k[len(seals.PREFIX) :] for k in run.data.tags if k.startswith(seals.PREFIX)):
         found = sorted(files.rglob(name))
+        if not found:
+            absent.append(name)
+            continue
         try:
-            if not found:
-                raise MrcertError(f"run {run.info.run_id}'s {name} is missing from its artifacts")
             seals.verify(run.info.run_id, run.data.tags, found[0])
         except MrcertError as exc:
-            return str(exc)
-    return None
+            return str(exc), absent
+    return None, absent
 
 
 def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str, str]) -> str:
     """One run copied into ``dst``, FINISHED last; its new id recorded in ``ids``. Returns
-    ``copied``, ``without_artifacts`` (they are gone), or why it was refused (a sealed file
-    that is not what its run sealed: nothing of it is copied)."""
+    ``copied``, ``without_artifacts`` (all of them or some sealed ones are gone: each named), or
+    why it was refused (a sealed file that is not what its run sealed: nothing of it is copied)."""
     from mlflow.entities import Metric, Param, RunTag
 
     source_id = run.info.run_id
@@ -112,9 +118,11 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
     with tempfile.TemporaryDirectory() as tmp:
         files = Path(tmp)
         lost = not _artifacts(src, run, folder, files) and "mrcert.task" in tags  # a task run logs its config
-        refused = None if lost else _refusal(run, files)
+        refused, absent = (None, []) if lost else _checked(run, files)
         if refused:
             return refused
+        if absent:
+            print(f"gathered without its {', '.join(absent)}: run {source_id}")
         # Made with no key: until its end a half-made copy is nothing a task could resume or a table read.
         new = dst.create_run(
             experiment_id, start_time=run.info.start_time, tags={GATHERED: source_id}, run_name=run.info.run_name
@@ -139,7 +147,7 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
             dst.log_artifacts(new_id, str(files))
     dst.set_terminated(new_id, "FINISHED", end_time=run.info.end_time)
     ids[source_id] = new_id
-    return "without_artifacts" if lost else "copied"
+    return "without_artifacts" if lost or absent else "copied"
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -179,7 +187,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         seal_finished(dst, experiment_id)
     print(
         f"Gathered {totals['gathered']} runs from {uri} ({totals['already_here']} already here"
-        + (f"; {totals['without_artifacts']} without artifacts" if totals["without_artifacts"] else "")
+        + (f"; {totals['without_artifacts']} without some or all of their artifacts" if totals["without_artifacts"] else "")
         + (f"; {totals['kept_keys']} kept their keys" if totals["kept_keys"] else "")
         + (f"; {totals['refused']} refused: their files are not what they sealed" if totals["refused"] else "")
         + ")"
