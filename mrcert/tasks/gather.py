@@ -187,7 +187,11 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         seal_finished(dst, experiment_id)
     print(
         f"Gathered {totals['gathered']} runs from {uri} ({totals['already_here']} already here"
-        + (f"; {totals['without_artifacts']} without some or all of their artifacts" if totals["without_artifacts"] else "")
+        + (
+            f"; {totals['without_artifacts']} without some or all of their artifacts"
+            if totals["without_artifacts"]
+            else ""
+        )
         + (f"; {totals['kept_keys']} kept their keys" if totals["kept_keys"] else "")
         + (f"; {totals['refused']} refused: their files are not what they sealed" if totals["refused"] else "")
         + ")"
