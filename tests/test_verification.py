@@ -82,6 +82,39 @@ def test_a_roll_keeps_depth_ties_as_a_translation_does(axis):
     assert ((high - low).max(1) == 0).all()
 
 
+def row_sampled_wall() -> tuple[torch.Tensor, torch.Tensor]:
+    """A wall sampled in rows along x, as synthetic scenes are: each row's points share their
+    height and depth exactly (the wall leans back, so rows lie at different depths), several to a
+    pixel, each of its own colour."""
+    x, y = np.meshgrid(np.arange(-200, 200) * 0.003, np.arange(-100, 100) * 0.003)
+    points = np.column_stack([x.ravel(), y.ravel(), 3.0 + 0.3 * y.ravel()])
+    colors = np.random.default_rng(5).uniform(0, 1, (len(points), 3)).astype(np.float32)
+    return torch.from_numpy(points), torch.from_numpy(colors)
+
+
+def test_a_pitch_keeps_a_rows_ties_and_a_yaw_breaks_them():
+    """Along a pitch the points of a row keep one depth (their height and depth are equal), so
+    the row's first point holds its pixels: micro-radian pieces keep almost every pixel to one
+    value. Along a yaw their depths part at any angle, however small, and the image changes in
+    most pixels; the boxes hold those images (sound, and as tight as the images allow)."""
+    points, colors = row_sampled_wall()
+    edges = np.array([-1e-6, 0.0, 1e-6])
+    for axis in ("rx", "ry"):
+        low, high = image_boxes(points, colors, PAPER_K, axis, edges[:-1], edges[1:], H, W, 1.0)
+        for k in range(2):
+            assert (
+                outside(render(points, colors, piece_poses(axis, edges[k], edges[k + 1], 300, seed=k)), low[k], high[k])
+                == 0
+            )
+        single = ((high - low).max(1) == 0).mean()
+        if axis == "rx":
+            assert single > 0.98
+        else:
+            views = render(points, colors, piece_poses(axis, -1e-9, 1e-9, 0))  # -1e-9, 1e-9, 0, ...
+            changed = ((views[:2] - views[2]).abs().amax(1) > 0).any(0).double().mean().item()
+            assert changed > 0.5 and single < 1 - changed + 0.01
+
+
 @pytest.mark.parametrize("x", [1e-12, 0.0, -1e-12])
 def test_points_on_the_principal_axis_keep_their_box(x):
     """Points a hair off the principal axis (or on it) project onto the column edge u = cx for

@@ -5,8 +5,10 @@ finds, per point, the box of pixels its path can cross (the path of a translatio
 segment, that of a rotation an arc, held in a triangle) and, per pixel, whether some point
 stays in it throughout (so that it is never empty) and how deep such a point can be. A point
 whose path crosses a pixel may show there unless a staying point is always strictly nearer,
-or -- along a translation or a roll, where two points of equal depth keep equal depths -- at
-most as far in the reference frame and of lower rank (it then wins every tie). The colours a
+or it is of lower rank (it then wins every tie) and never farther: along a translation or a
+roll, where two points of equal depth keep equal depths, at most as far in the reference frame;
+along a pitch or a yaw, at the same reference depth and height (pitch) or abscissa (yaw), which
+give the same depth, bit for bit, at every pose (:func:`_axis_terms`). The colours a
 pixel can take anywhere in the piece are therefore those of the points that may show there,
 plus the background unless a point stays in it. Points that may cross the camera plane may land
 anywhere; extents are widened so that rounding never moves a point out of its box: by
@@ -53,14 +55,19 @@ def _scene(points, colors, K, rank):
     return xyz, table, ranks, (fx, fy, cx, cy)
 
 
-def _axis_terms(axis: str) -> tuple[int, bool, bool]:
+def _axis_terms(axis: str) -> tuple[int, bool, int]:
     """The kernels' view of ``axis``: its index among the translations or the rotations, whether
-    it is a translation, and whether every depth stays its reference depth less one amount at
-    every pose (along a translation: exactly 0 or t on the axis; along a roll: 0, the rotation's
-    depth row being exactly (0, 0, 1), made on the CPU for every device), so that the order and
-    the ties of depths are kept."""
+    it is a translation, and which of a point's reference coordinates its depth at every pose
+    depends on besides its reference depth, in the projection's arithmetic
+    (``r02 dx + r12 dy + r22 dz``, the rotation made on the CPU for every device): ``-1`` for
+    none -- along a translation the depth is ``Z`` less 0 or t, along a roll ``Z`` itself (the
+    column is exactly (0, 0, 1)), so the order and the ties of depths are kept -- ``1`` (``Y``)
+    along a pitch, whose column is exactly (0, -sin, cos), and ``0`` (``X``) along a yaw, (sin, 0,
+    cos): there two points of equal ``Z`` and equal ``Y`` (or ``X``) have the same depth, bit for
+    bit, at every pose, and the one of lower rank wins every tie."""
     i, translation = axis_index(axis), is_translation(axis)
-    return (i if translation else i - 3), translation, translation or axis == "rz"
+    shared = -1 if translation or axis == "rz" else {"rx": 1, "ry": 0}[axis]
+    return (i if translation else i - 3), translation, shared
 
 
 def _check_rotation(axis: str, widest: float) -> None:
@@ -105,7 +112,7 @@ def piece_bounds(
     pieces = len(amounts) - 1
     left, right = np.empty(pieces), np.empty(pieces)
     maps = np.empty((2, pieces if per_pixel else 0, height * width))
-    j, translation, depths_kept = _axis_terms(axis)
+    j, translation, shared = _axis_terms(axis)
     _distance_kernel(
         xyz,
         ranks,
@@ -113,7 +120,7 @@ def piece_bounds(
         amounts,
         j,
         translation,
-        depths_kept,
+        shared,
         *camera,
         height,
         width,
@@ -145,7 +152,7 @@ def image_boxes(
     of the piece; ``points``, ``colors``, ``K``, ``background`` and ``rank`` as for
     :func:`piece_bounds`. Extents are widened by :data:`ROUNDING` along a translation, by
     :data:`PIXEL_SLACK` along a rotation."""
-    j, translation, depths_kept = _axis_terms(axis)
+    j, translation, shared = _axis_terms(axis)
     starts = np.ascontiguousarray(np.asarray(starts, np.float64).reshape(-1))
     ends = np.ascontiguousarray(np.asarray(ends, np.float64).reshape(-1))
     if len(starts) != len(ends) or not np.all(ends >= starts):
@@ -157,7 +164,7 @@ def image_boxes(
     high = np.empty_like(low)
     slack = (0.0, ROUNDING) if translation else (PIXEL_SLACK, 0.0)
     _box_kernel(
-        xyz, ranks, table, starts, ends, j, translation, depths_kept, *camera, height, width, *slack,
+        xyz, ranks, table, starts, ends, j, translation, shared, *camera, height, width, *slack,
         float(background), low, high,
     )  # fmt: skip
     shape = (len(starts), table.shape[1], height, width)
@@ -194,16 +201,15 @@ def _path_vertices(P, a0, a1, j, translation, out):  # pragma: no cover - compil
 def _piece_reach(P, rank, a0, a1, j, translation, fx, fy, cx, cy, height, width, slack, relative):  # pragma: no cover
     """The geometry of one piece (module docstring): per point its pixel box (u0, u1, v0, v1;
     u0 > u1: it cannot land) and least depth; per pixel the largest depth of a point staying in
-    it, minimised (inf: it may be empty), and, for translations, the staying point of least
-    (reference depth, rank). Extents are widened by ``slack`` pixels plus ``relative`` times
+    it, minimised (inf: it may be empty), and the staying point of least (reference depth, rank)
+    (its row; -1: none). Extents are widened by ``slack`` pixels plus ``relative`` times
     ``|u| + |u - cx| + 1`` (the two terms the column is summed from, and one)."""
     n = P.shape[0]
     hw = height * width
     box = np.zeros((n, 4), np.int64)
     zlow = np.empty(n)
     cover = np.full(hw, np.inf)
-    tie_z = np.full(hw, np.inf)
-    tie_rank = np.zeros(hw, np.int64)
+    tie = np.full(hw, -1, np.int64)
     verts = np.empty((3, 3))
     for i in range(n):
         m = _path_vertices(P[i], a0, a1, j, translation, verts)
@@ -241,30 +247,38 @@ def _piece_reach(P, rank, a0, a1, j, translation, fx, fy, cx, cy, height, width,
         if lo_u == hi_u and lo_v == hi_v:  # stays in this pixel for the whole piece
             p = int(lo_v) * width + int(lo_u)
             cover[p] = min(cover[p], zmax + 1e-9 * abs(zmax))
-            if P[i, 2] < tie_z[p] or (P[i, 2] == tie_z[p] and rank[i] < tie_rank[p]):
-                tie_z[p], tie_rank[p] = P[i, 2], rank[i]
-    return box, zlow, cover, tie_z, tie_rank
+            k = tie[p]
+            if k < 0 or P[i, 2] < P[k, 2] or (P[i, 2] == P[k, 2] and rank[i] < rank[k]):
+                tie[p] = i
+    return box, zlow, cover, tie
 
 
 @numba.njit(cache=True, nogil=True)
-def _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, depths_kept):  # pragma: no cover - compiled
+def _may_show(i, p, P, rank, zlow, cover, tie, shared):  # pragma: no cover - compiled
     """Whether point ``i``, whose path crosses pixel ``p``, can be the one seen there."""
     if zlow[i] > cover[p]:  # a point staying here is always nearer
         return False
-    # With ``depths_kept`` (:func:`_axis_terms`) order and ties of depths are kept: no deeper or
-    # tied point of higher rank ever beats the staying point.
-    return not (depths_kept and P[i, 2] >= tie_z[p] and rank[i] > tie_rank[p])
+    k = tie[p]
+    if k < 0 or rank[i] <= rank[k]:  # none, or i itself (ranks are unique)
+        return True
+    # The staying point of least (reference depth, rank) wins against i at every pose when i's
+    # depth is never less than its (:func:`_axis_terms`): along a translation or a roll, where
+    # depths keep their order and ties, when i is no nearer in the reference frame; along a pitch
+    # or a yaw when i has its depth and its shared coordinate exactly.
+    if shared < 0:
+        return P[i, 2] < P[k, 2]
+    return not (P[i, 2] == P[k, 2] and P[i, shared] == P[k, shared])
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _distance_kernel(
-    P, rank, colors, amounts, j, translation, depths_kept, fx, fy, cx, cy, height, width, background, frames, left,
+    P, rank, colors, amounts, j, translation, shared, fx, fy, cx, cy, height, width, background, frames, left,
     right, maps
 ):  # pragma: no cover - compiled  # fmt: skip
     n, nc = P.shape[0], colors.shape[1]
     hw = height * width
     for k in numba.prange(len(amounts) - 1):
-        box, zlow, cover, tie_z, tie_rank = _piece_reach(
+        box, zlow, cover, tie = _piece_reach(
             P, rank, amounts[k], amounts[k + 1], j, translation, fx, fy, cx, cy, height, width, PIXEL_SLACK, 0.0
         )
         worst_l = np.zeros(hw)
@@ -275,7 +289,7 @@ def _distance_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, depths_kept):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie, shared):
                         continue
                     dl, dr = 0.0, 0.0
                     for ch in range(nc):
@@ -303,13 +317,13 @@ def _distance_kernel(
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _box_kernel(
-    P, rank, colors, starts, ends, j, translation, depths_kept, fx, fy, cx, cy, height, width, slack, relative,
+    P, rank, colors, starts, ends, j, translation, shared, fx, fy, cx, cy, height, width, slack, relative,
     background, low, high
 ):  # pragma: no cover - compiled  # fmt: skip
     n, nc = P.shape[0], colors.shape[1]
     hw = height * width
     for k in numba.prange(len(starts)):
-        box, zlow, cover, tie_z, tie_rank = _piece_reach(
+        box, zlow, cover, tie = _piece_reach(
             P, rank, starts[k], ends[k], j, translation, fx, fy, cx, cy, height, width, slack, relative
         )
         lo = np.full((nc, hw), np.inf)
@@ -320,7 +334,7 @@ def _box_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie_z, tie_rank, depths_kept):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie, shared):
                         continue
                     for ch in range(nc):
                         lo[ch, p] = min(lo[ch, p], colors[i, ch])
