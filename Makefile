@@ -67,9 +67,9 @@ reproduce-tables: $(STAMP) ## every table and figure of the paper and the eviden
 side-by-side: $(STAMP) ## pixel-wise smoothing and bound propagation beside camera motion smoothing (docs/results.md; after make reproduce-tables' certify stage)
 	$(MRCERT) -m experiment=side_by_side task=train
 	$(MRCERT) -m experiment=side_by_side task=certify
-	$(MRCERT) -m experiment=reproduce_quick task=certify motion=tz,ry model.variant=augmented \
+	$(MRCERT) -m experiment=reproduce_quick task=certify motion=tz,rx model.variant=augmented \
 	  'model.trained_for={name:pixelwise,sigma:0.25},{name:pixelwise,sigma:0.5}'  # motion smoothing on each pixel-noise model
-	$(MRCERT) -m experiment=reproduce_quick task=certify motion=tz,ry model.variant=augmented task.skip=5 \
+	$(MRCERT) -m experiment=reproduce_quick task=certify motion=tz,rx model.variant=augmented task.skip=5 \
 	  method=bound_propagation method.half_width=0.00001,0.0001,0.001,0.01 \
 	  'model.trained_for={name:camera_motion},{name:pixelwise,sigma:0.25},{name:pixelwise,sigma:0.5}'  # deterministic, on each model
 	$(PAGE_TABLES)
