@@ -55,6 +55,18 @@ def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_
     assert (section["n"], section["alpha"], section["images"]) == (200, 0.01, len(clog))
     assert f"| certify | 1 | {len(clog)} |" in times and f"| {machine()} (1 run) |" in times
     assert "| train | 1 |" in times and "| smooth |" not in times  # stages that did not run are left out
+    # The whole profile at these paces: each measured job's time times the profile's jobs of its
+    # stage (12 on the small CNN: the ResNets' two rows are one job here) or models (7: one vanilla
+    # model for every axis and one augmented per axis).
+    df = index(gpu_store).index.df.set_index("run_id")
+    seconds = {df.loc[r, "tags.mrcert.task"]: results_page.run_seconds(df.loc[r]) for r in df.index}
+    estimate = section["estimate"]
+    shown = " ".join(estimate["table"].split())
+    for stage, jobs in (("train", 7), ("certify", 12)):
+        hours = seconds[stage] / 3600
+        assert f"| {stage} | small_cnn | 1 | {hours:.3f} | {jobs} | {jobs * hours:.2f} |" in shown
+    assert estimate["hours"] == f"{(7 * seconds['train'] + 12 * seconds['certify']) / 3600:.2f}"
+    assert estimate["unmeasured"] == ""
     # A store without paper-profile runs gets a section that says how many jobs it lacks.
     empty = results_page.paper_profile_section(index(gpu_store.parent / "nothing-here"))
     assert empty == {"profile": "paper", "experiment": "reproduce_paper", "missing": 24}

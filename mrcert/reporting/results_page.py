@@ -461,6 +461,7 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
     }  # one job per row (cell overrides can make two of the sweep's jobs one)
     if not filled:
         return missing
+    every = jobs_of(paper, experiment)
     jobs = list(filled.values())
     table = paper_tables.TABLE3.build(paper, show_paper=True, name="paper_profile")
     cfg = jobs[0].certify.cfg
@@ -478,6 +479,54 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
         "table": markdown(as_text(table.loc[list(filled)])),
         "models": markdown(as_text(base_models(paper, jobs))),
         "times": shown_times(stage_times(paper)),
+        "estimate": profile_estimate(paper, experiment, every),
+    }
+
+
+def profile_estimate(src: ExperimentCells, experiment: str, jobs: list[Job]) -> dict:
+    """The whole experiment's run time at the paces measured here: per stage and architecture
+    with runs in the store, the mean working time of a job (its runs summed), times the jobs the
+    experiment has for that stage and architecture (for training, the distinct models its jobs
+    bind). An architecture without a run here is named, not estimated."""
+    from mrcert.infra.resolver import train_key
+
+    df = src.index.df.set_index("run_id")
+    cells = {(j.axis, j.variant, j.arch): j for j in jobs}  # overrides can make two of the sweep's jobs one
+    need = pd.Series([arch for _, _, arch in cells]).value_counts()
+    models = pd.Series([a for a, _ in {(j.arch, train_key(j.certify.cfg)) for j in cells.values()}]).value_counts()
+    per_job: dict[tuple[str, str], list[float]] = {}
+    trained: dict[str, str] = {}
+    for (e, stage), read in src.read.items():
+        if e != experiment:
+            continue
+        for cell in read.values():
+            arch = str(cell.cfg.model.arch)
+            ids = [r for r in cell.run_ids if r in df.index]
+            per_job.setdefault((stage, arch), []).append(sum(run_seconds(df.loc[r]) for r in ids))
+            if cell.train_run in df.index:
+                trained[cell.train_run] = arch
+    for run, arch in trained.items():
+        per_job.setdefault(("train", arch), []).append(run_seconds(df.loc[run]))
+    rows, total = [], 0.0
+    for (stage, arch), seconds in sorted(per_job.items(), key=lambda kv: (kv[0][0] != "train", kv[0])):
+        jobs_there = int((models if stage == "train" else need)[arch])
+        mean = float(np.mean(seconds))
+        total += mean * jobs_there / 3600
+        rows.append(
+            {
+                "stage": stage,
+                "architecture": arch,
+                "jobs measured": len(seconds),
+                "hours per job": f"{mean / 3600:.3f}",
+                "jobs in the profile": jobs_there,
+                "estimated hours": f"{mean * jobs_there / 3600:.2f}",
+            }
+        )
+    measured = {arch for _, arch in per_job}
+    return {
+        "table": markdown(pd.DataFrame(rows)),
+        "hours": f"{total:.2f}",
+        "unmeasured": ", ".join(f"{a} ({int(need[a])} jobs)" for a in need.index if a not in measured),
     }
 
 
