@@ -198,18 +198,32 @@ def _path_vertices(P, a0, a1, j, translation, out):  # pragma: no cover - compil
 
 
 @numba.njit(cache=True, nogil=True)
-def _piece_reach(P, rank, a0, a1, j, translation, fx, fy, cx, cy, height, width, slack, relative):  # pragma: no cover
+def _piece_reach(
+    P, rank, a0, a1, j, translation, shared, fx, fy, cx, cy, height, width, slack, relative
+):  # pragma: no cover
     """The geometry of one piece (module docstring): per point its pixel box (u0, u1, v0, v1;
     u0 > u1: it cannot land) and least depth; per pixel the largest depth of a point staying in
-    it, minimised (inf: it may be empty), and the staying point of least (reference depth, rank)
-    (its row; -1: none). Extents are widened by ``slack`` pixels plus ``relative`` times
-    ``|u| + |u - cx| + 1`` (the two terms the column is summed from, and one)."""
+    it, minimised (inf: it may be empty), and two staying points that may hide others there
+    (rows; -1: none): the one of least (reference depth, rank) and, along a pitch or a yaw on one
+    side of no rotation, the one of least (reference depth, signed shared coordinate, rank); and
+    the piece's signs for :func:`_hides`. Extents are widened by ``slack`` pixels plus
+    ``relative`` times ``|u| + |u - cx| + 1`` (the two terms the column is summed from, and one)."""
     n = P.shape[0]
     hw = height * width
     box = np.zeros((n, 4), np.int64)
     zlow = np.empty(n)
     cover = np.full(hw, np.inf)
     tie = np.full(hw, -1, np.int64)
+    tie2 = np.full(hw, -1, np.int64)
+    # Along a pitch or a yaw within a quarter turn of no rotation, a depth is the rounded sum of
+    # the rounded products (shared coordinate) x (-sin or sin) and Z x cos with cos >= 0: it never
+    # decreases with Z, and with the shared coordinate times ``wsign`` on a piece on one side of
+    # no rotation (on a piece across it that coordinate must be equal).
+    wsign, zsign = 0, 1
+    if shared >= 0:
+        zsign = 1 if max(abs(a0), abs(a1)) <= 0.5 * np.pi else 0
+        side = 0 if zsign == 0 else (1 if a0 >= 0.0 else (-1 if a1 <= 0.0 else 0))
+        wsign = -side if shared == 1 else side
     verts = np.empty((3, 3))
     for i in range(n):
         m = _path_vertices(P[i], a0, a1, j, translation, verts)
@@ -250,24 +264,42 @@ def _piece_reach(P, rank, a0, a1, j, translation, fx, fy, cx, cy, height, width,
             k = tie[p]
             if k < 0 or P[i, 2] < P[k, 2] or (P[i, 2] == P[k, 2] and rank[i] < rank[k]):
                 tie[p] = i
-    return box, zlow, cover, tie
+            k = tie2[p]
+            if wsign != 0 and (
+                k < 0
+                or P[i, 2] < P[k, 2]
+                or (P[i, 2] == P[k, 2] and wsign * P[i, shared] < wsign * P[k, shared])
+                or (P[i, 2] == P[k, 2] and P[i, shared] == P[k, shared] and rank[i] < rank[k])
+            ):
+                tie2[p] = i
+    return box, zlow, cover, tie, tie2, wsign, zsign
 
 
 @numba.njit(cache=True, nogil=True)
-def _may_show(i, p, P, rank, zlow, cover, tie, shared):  # pragma: no cover - compiled
+def _hides(k, i, P, rank, shared, wsign, zsign):  # pragma: no cover - compiled
+    """Whether the staying point ``k`` wins against point ``i`` at every pose of the piece: it
+    is of lower rank (it wins every tie) and i's depth is never less than its, because every
+    rounding step of the projection's depth is monotone (:func:`_axis_terms`): along a
+    translation or a roll i is no nearer in the reference frame; along a pitch or a yaw i's
+    reference depth and shared coordinate are each equal to k's or, where the piece's signs
+    allow (:func:`_piece_reach`), on the deeper side."""
+    if k < 0 or rank[i] <= rank[k]:  # none, or i itself (ranks are unique)
+        return False
+    zi, zk = P[i, 2], P[k, 2]
+    if not (zi == zk or (zsign > 0 and zi > zk)):
+        return False
+    if shared < 0:
+        return True
+    wi, wk = P[i, shared], P[k, shared]
+    return wi == wk or (wsign != 0 and wsign * wi > wsign * wk)
+
+
+@numba.njit(cache=True, nogil=True)
+def _may_show(i, p, P, rank, zlow, cover, tie, tie2, shared, wsign, zsign):  # pragma: no cover - compiled
     """Whether point ``i``, whose path crosses pixel ``p``, can be the one seen there."""
     if zlow[i] > cover[p]:  # a point staying here is always nearer
         return False
-    k = tie[p]
-    if k < 0 or rank[i] <= rank[k]:  # none, or i itself (ranks are unique)
-        return True
-    # The staying point of least (reference depth, rank) wins against i at every pose when i's
-    # depth is never less than its (:func:`_axis_terms`): along a translation or a roll, where
-    # depths keep their order and ties, when i is no nearer in the reference frame; along a pitch
-    # or a yaw when i has its depth and its shared coordinate exactly.
-    if shared < 0:
-        return P[i, 2] < P[k, 2]
-    return not (P[i, 2] == P[k, 2] and P[i, shared] == P[k, shared])
+    return not (_hides(tie[p], i, P, rank, shared, wsign, zsign) or _hides(tie2[p], i, P, rank, shared, wsign, zsign))
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -278,8 +310,8 @@ def _distance_kernel(
     n, nc = P.shape[0], colors.shape[1]
     hw = height * width
     for k in numba.prange(len(amounts) - 1):
-        box, zlow, cover, tie = _piece_reach(
-            P, rank, amounts[k], amounts[k + 1], j, translation, fx, fy, cx, cy, height, width, PIXEL_SLACK, 0.0
+        box, zlow, cover, tie, tie2, wsign, zsign = _piece_reach(
+            P, rank, amounts[k], amounts[k + 1], j, translation, shared, fx, fy, cx, cy, height, width, PIXEL_SLACK, 0.0
         )
         worst_l = np.zeros(hw)
         worst_r = np.zeros(hw)
@@ -289,7 +321,7 @@ def _distance_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie, shared):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie, tie2, shared, wsign, zsign):
                         continue
                     dl, dr = 0.0, 0.0
                     for ch in range(nc):
@@ -323,8 +355,8 @@ def _box_kernel(
     n, nc = P.shape[0], colors.shape[1]
     hw = height * width
     for k in numba.prange(len(starts)):
-        box, zlow, cover, tie = _piece_reach(
-            P, rank, starts[k], ends[k], j, translation, fx, fy, cx, cy, height, width, slack, relative
+        box, zlow, cover, tie, tie2, wsign, zsign = _piece_reach(
+            P, rank, starts[k], ends[k], j, translation, shared, fx, fy, cx, cy, height, width, slack, relative
         )
         lo = np.full((nc, hw), np.inf)
         hi = np.full((nc, hw), -np.inf)
@@ -334,7 +366,7 @@ def _box_kernel(
             for v in range(box[i, 2], box[i, 3] + 1):
                 for u in range(box[i, 0], box[i, 1] + 1):
                     p = v * width + u
-                    if not _may_show(i, p, P, rank, zlow, cover, tie, shared):
+                    if not _may_show(i, p, P, rank, zlow, cover, tie, tie2, shared, wsign, zsign):
                         continue
                     for ch in range(nc):
                         lo[ch, p] = min(lo[ch, p], colors[i, ch])
