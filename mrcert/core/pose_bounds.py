@@ -5,13 +5,14 @@ finds, per point, the box of pixels its path can cross (the path of a translatio
 segment, that of a rotation an arc, held in a triangle) and, per pixel, whether some point
 stays in it throughout (so that it is never empty) and how deep such a point can be. A point
 whose path crosses a pixel may show there unless a staying point is always strictly nearer,
-or it is of lower rank (it then wins every tie) and never farther: along a translation or a
-roll, where two points of equal depth keep equal depths, at most as far in the reference frame;
-along a pitch or a yaw, at the same reference depth and height (pitch) or abscissa (yaw), which
-give the same depth, bit for bit, at every pose (:func:`_axis_terms`). The colours a
-pixel can take anywhere in the piece are therefore those of the points that may show there,
-plus the background unless a point stays in it. Points that may cross the camera plane may land
-anywhere; extents are widened so that rounding never moves a point out of its box: by
+or it is of lower rank (it then wins every tie) and never farther (:func:`_hides`): along a
+translation or a roll, where two points of equal depth keep equal depths, at most as far in the
+reference frame; along a pitch or a yaw, at the same reference depth and height (pitch) or
+abscissa (yaw), which give the same depth, bit for bit, at every pose (:func:`_axis_terms`), or,
+on a piece on one side of no rotation, on the side of each that never brings the point nearer.
+The colours a pixel can take anywhere in the piece are therefore those of the points that may
+show there, plus the background unless a point stays in it. Points that may cross the camera
+plane may land anywhere; extents are widened so that rounding never moves a point out of its box: by
 :data:`PIXEL_SLACK` pixels, or along a translation by :data:`ROUNDING` (module constant's note).
 
 * :func:`piece_bounds` (pixel-wise smoothing): upper bounds on the l2 distance between the
@@ -64,7 +65,9 @@ def _axis_terms(axis: str) -> tuple[int, bool, int]:
     column is exactly (0, 0, 1)), so the order and the ties of depths are kept -- ``1`` (``Y``)
     along a pitch, whose column is exactly (0, -sin, cos), and ``0`` (``X``) along a yaw, (sin, 0,
     cos): there two points of equal ``Z`` and equal ``Y`` (or ``X``) have the same depth, bit for
-    bit, at every pose, and the one of lower rank wins every tie."""
+    bit, at every pose, and the one of lower rank wins every tie; every rounding step being
+    monotone, a depth also never decreases with ``Z`` within a quarter turn, nor with ``Y`` (or
+    ``X``) times the sign of its coefficient on a piece on one side of no rotation."""
     i, translation = axis_index(axis), is_translation(axis)
     shared = -1 if translation or axis == "rz" else {"rx": 1, "ry": 0}[axis]
     return (i if translation else i - 3), translation, shared
