@@ -66,7 +66,15 @@ def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_
         hours = seconds[stage] / 3600
         assert f"| {stage} | small_cnn | 1 | {hours:.3f} | {jobs} | {jobs * hours:.2f} |" in shown
     assert estimate["hours"] == f"{(7 * seconds['train'] + 12 * seconds['certify']) / 3600:.2f}"
-    assert estimate["unmeasured"] == ""
+    # The profile's other stages are named, not estimated.
+    assert estimate["unmeasured"].split("; ") == [
+        "certify (task.sequential=true)",
+        "smooth",
+        "attack (attack.k=5)",
+        "attack (attack.k=100)",
+        "attack (attack.k=5, task.sequential=true)",
+        "attack (attack.k=100, task.sequential=true)",
+    ]
     # A store without paper-profile runs gets a section that says how many jobs it lacks.
     empty = results_page.paper_profile_section(index(gpu_store.parent / "nothing-here"))
     assert empty == {"profile": "paper", "experiment": "reproduce_paper", "missing": 24}

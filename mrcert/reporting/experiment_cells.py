@@ -79,6 +79,12 @@ class ExperimentCells:
         except HydraException:
             return None
 
+    def stage(self, measure: Measure) -> str:
+        """The stage whose runs fill ``measure``'s cells: its task, with the overrides that tell
+        its runs apart (``attack (attack.k=100)``)."""
+        task = self.certify_task if measure.task == "certify" else measure.task
+        return f"{task} ({', '.join(measure.overrides)})" if measure.overrides else task
+
     def cell(self, experiment: str, combo: tuple[str, ...], measure: Measure) -> Cell:
         task = self.certify_task if measure.task == "certify" else measure.task
         fixed = {o.split("=", 1)[0] for o in (*measure.overrides, *self.overrides)}
@@ -89,8 +95,7 @@ class ExperimentCells:
         )
         ids = tuple(cell.run_ids)
         if ids and not any(ids in cells for cells in self.read.values()):
-            stage = f"{task} ({', '.join(measure.overrides)})" if measure.overrides else task
-            self.read.setdefault((experiment, stage), {})[ids] = cell
+            self.read.setdefault((experiment, self.stage(measure)), {})[ids] = cell
         return cell
 
     def rows(self, experiment: str, measure: Measure):
