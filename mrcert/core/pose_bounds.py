@@ -203,7 +203,7 @@ def _path_vertices(P, a0, a1, j, translation, out):  # pragma: no cover - compil
 @numba.njit(cache=True, nogil=True)
 def _piece_reach(
     P, rank, a0, a1, j, translation, shared, fx, fy, cx, cy, height, width, slack, relative
-):  # pragma: no cover
+):  # pragma: no cover - compiled
     """The geometry of one piece (module docstring): per point its pixel box (u0, u1, v0, v1;
     u0 > u1: it cannot land) and least depth; per pixel the largest depth of a point staying in
     it, minimised (inf: it may be empty), and two staying points that may hide others there

@@ -79,14 +79,18 @@ class ExperimentCells:
         except HydraException:
             return None
 
+    def task(self, measure: Measure) -> str:
+        """The task whose runs fill ``measure``'s cells (``certify_task`` for certification)."""
+        return self.certify_task if measure.task == "certify" else measure.task
+
     def stage(self, measure: Measure) -> str:
         """The stage whose runs fill ``measure``'s cells: its task, with the overrides that tell
         its runs apart (``attack (attack.k=100)``)."""
-        task = self.certify_task if measure.task == "certify" else measure.task
+        task = self.task(measure)
         return f"{task} ({', '.join(measure.overrides)})" if measure.overrides else task
 
     def cell(self, experiment: str, combo: tuple[str, ...], measure: Measure) -> Cell:
-        task = self.certify_task if measure.task == "certify" else measure.task
+        task = self.task(measure)
         fixed = {o.split("=", 1)[0] for o in (*measure.overrides, *self.overrides)}
         combo = tuple(c for c in combo if c.split("=", 1)[0] not in fixed)
         cell = self.index.cell(

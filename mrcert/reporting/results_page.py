@@ -465,14 +465,14 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
     if not (profiles == PAPER_PROFILE).any():
         return missing
     paper = ExperimentCells(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
+    every = jobs_of(paper, experiment)
     filled = {
         (AXIS_NAMES.get(j.axis, j.axis), model_label(j.arch, j.variant)): j
-        for j in jobs_of(paper, experiment)
+        for j in every
         if any(c.filled for c in (j.certify, j.smooth, j.attack))
     }  # one job per row (cell overrides can make two of the sweep's jobs one)
     if not filled:
         return missing
-    every = jobs_of(paper, experiment)
     jobs = list(filled.values())
     table = paper_tables.TABLE3.build(paper, show_paper=True, name="paper_profile")
     for measure in PROFILE_STAGES:  # the stages Table 3 does not read, for their times
