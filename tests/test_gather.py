@@ -165,3 +165,27 @@ def test_a_store_brought_home_without_its_resume_checkpoints_fills_the_same_cell
     assert ours.equals(paper_tables.TABLE3.build(index(gpu_store, "paper"), name="t")) and ours.notna().any().any()
     cell = index(here, "paper").cell("reproduce_paper", ("motion=tz", "model.variant=vanilla"), paper_tables.CERTIFIED)
     assert read_checkpoint(local_checkpoint(cell.cfg.model.checkpoint))["arch"] == "small_cnn"
+
+
+def test_a_store_carried_between_machines_holds_each_run_once_and_skips_what_it_holds(gpu_store, tmp_path):
+    # Packed without the resume checkpoints, taken to a fresh machine, worked on there, gathered
+    # back: each run is in the carried store once, and the fresh machine redoes nothing it holds.
+    carried, fresh = tmp_path / "carried", tmp_path / "fresh"
+    packed = run(carried, ["task=gather", f"task.store={gpu_store}", "task.without=[last.pt]"], "pack")
+    assert (packed["gathered"], packed["without_artifacts"]) == (2, 1)  # the train run lacks last.pt
+    assert not list((carried / "mlartifacts").rglob("last.pt")) and list((carried / "mlartifacts").rglob("best.pt"))
+    gather(fresh, carried)
+    _, before = runs_of(fresh)
+    certify = [*PAPER, "task=certify", "task.batch_size=64", *CHEAP, "skip_finished=true"]
+    run(fresh, certify, "again")  # held: the gathered run stands in for it
+    run(fresh, [*PAPER, "task=certify", "task.batch_size=64", "task.n=200", "task.skip=4"], "new")
+    _, after = runs_of(fresh)
+    assert len(after) == len(before) + 1
+    back = gather(carried, fresh)
+    # The new run and the gather that filled fresh are new; the three copies are the carried runs.
+    assert (back["gathered"], back["already_here"]) == (2, len(before) - 1)
+    _, held = runs_of(carried)
+    tasks = sorted(r.data.tags.get("mrcert.task") for r in held.values() if r.data.tags.get("mrcert.task") != "gather")
+    assert tasks == ["certify", "certify", "train"]
+    ours = paper_tables.TABLE3.build(index(carried, "paper"), name="t")
+    assert ours.equals(paper_tables.TABLE3.build(index(gpu_store, "paper"), name="t")) and ours.notna().any().any()

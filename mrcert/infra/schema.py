@@ -197,6 +197,7 @@ class Gather:
     _target_: str = MISSING  # the Task class that runs it
     name: str = MISSING
     store: str = MISSING
+    without: list[str] = field(default_factory=list)
 
 
 @dataclass

@@ -17,6 +17,12 @@ sealed is not copied at all: one line names it and the file, and it is counted i
 sealed file that is absent (a store brought home without its resume checkpoints, ``last.pt``:
 90 MB for each ResNet-18) is no such file: the run is copied with what it has, one line names
 what it lacks, and it is counted in ``without_artifacts``, as a run whose artifacts are all gone.
+``task.without`` leaves files of those names behind on purpose (``[last.pt]``: a store packed for
+another machine with its models but not their resume state), with the same line and count.
+
+A run gathered back into the store it came from is already there: a source run whose
+``mrcert.gathered_from`` names a run here is not copied, so that two stores gathered into each
+other in turn (a store carried between machines) hold each run once.
 
 A store moved after its runs were made (copied off the machine that made them) is read from
 its folder: a run's artifacts are taken from ``<source>/mlartifacts/<run id>/artifacts`` when
@@ -103,7 +109,7 @@ def _checked(run, files: Path) -> tuple[str | None, list[str]]:
     return None, absent
 
 
-def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str, str]) -> str:
+def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str, str], without: tuple[str, ...]) -> str:
     """One run copied into ``dst``, FINISHED last; its new id recorded in ``ids``. Returns
     ``copied``, ``without_artifacts`` (all of them or some sealed ones are gone: each named), or
     why it was refused (a sealed file that is not what its run sealed: nothing of it is copied)."""
@@ -118,6 +124,8 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
     with tempfile.TemporaryDirectory() as tmp:
         files = Path(tmp)
         lost = not _artifacts(src, run, folder, files) and "mrcert.task" in tags  # a task run logs its config
+        for left in (f for name in without for f in files.rglob(name)):
+            left.unlink()
         refused, absent = (None, []) if lost else _checked(run, files)
         if refused:
             return refused
@@ -170,12 +178,14 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
         elif origin:  # a copy a kill left unfinished: made again below
             dst.delete_run(r.info.run_id)
     totals = {"gathered": 0, "already_here": 0, "without_artifacts": 0, "kept_keys": 0, "refused": 0}
+    without = tuple(str(name) for name in cfg.task.without)
     for r in _finished_runs(src, exp.experiment_id):
-        if r.info.run_id in ids or r.info.run_id in here:
-            ids.setdefault(r.info.run_id, r.info.run_id)
+        back = r.data.tags.get(GATHERED)  # a copy of a run of this store's: the run itself is here
+        if r.info.run_id in ids or r.info.run_id in here or back in here:
+            ids.setdefault(r.info.run_id, back if back in here else r.info.run_id)
             totals["already_here"] += 1
             continue
-        outcome = _copy(src, dst, r, experiment_id, folder, ids)
+        outcome = _copy(src, dst, r, experiment_id, folder, ids, without)
         if outcome in ("copied", "without_artifacts"):
             totals["gathered"] += 1
             totals["without_artifacts"] += outcome == "without_artifacts"
