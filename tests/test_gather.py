@@ -189,3 +189,19 @@ def test_a_store_carried_between_machines_holds_each_run_once_and_skips_what_it_
     assert tasks == ["certify", "certify", "train"]
     ours = paper_tables.TABLE3.build(index(carried, "paper"), name="t")
     assert ours.equals(paper_tables.TABLE3.build(index(gpu_store, "paper"), name="t")) and ours.notna().any().any()
+
+
+def test_a_store_folder_moved_elsewhere_is_read_in_place(gpu_store, tmp_path):
+    # A store committed or copied to another folder (its runs recorded their files under the old
+    # one): its tables and models read from its own mlartifacts.
+    made, moved = tmp_path / "made", tmp_path / "clone" / "store"
+    gather(made, gpu_store)
+    shutil.move(made, moved)
+    assert not made.exists()
+    ours = paper_tables.TABLE3.build(index(moved, "paper"), name="t")
+    assert ours.equals(paper_tables.TABLE3.build(index(gpu_store, "paper"), name="t")) and ours.notna().any().any()
+    here = index(moved, "paper")
+    cell = here.cell("reproduce_paper", ("motion=tz", "model.variant=vanilla"), paper_tables.CERTIFIED)
+    log = here.index.log(cell)  # the per-image log, read from the moved folder
+    assert log is not None and len(log) > 0, cell.note
+    assert local_checkpoint(cell.cfg.model.checkpoint).is_relative_to(moved)

@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
 from mrcert.infra import seals
+from mrcert.infra.store import moved_artifact
 
 BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
@@ -94,16 +95,17 @@ def selected_epoch(path: Path, model) -> int:
 
 def local_checkpoint(ref: str) -> Path:
     """The local file of a bound ``model.checkpoint``: for a ``runs:/`` URI downloaded from
-    MLflow and verified, byte for byte, against the checkpoint its run sealed (a one-line error
-    names the run and the file otherwise: a swapped file is never loaded under the run's name)."""
+    MLflow (from a moved store folder's own ``mlartifacts``) and verified, byte for byte, against
+    the checkpoint its run sealed (a one-line error names the run and the file otherwise: a
+    swapped file is never loaded under the run's name)."""
     if ":/" not in ref:
         return Path(ref)
     import mlflow
 
+    run_id, _, name = ref[len("runs:/") :].partition("/")
     try:
-        path = Path(mlflow.artifacts.download_artifacts(artifact_uri=ref))
-        run_id = ref[len("runs:/") :].split("/", 1)[0]
         tags = mlflow.MlflowClient().get_run(run_id).data.tags
+        path = moved_artifact(run_id, name) or Path(mlflow.artifacts.download_artifacts(artifact_uri=ref))
     except Exception as exc:  # missing artifact, unreachable store
         raise MrcertError(f"model.checkpoint={ref!r} cannot be fetched from MLflow: {exc}") from None
     seals.verify(run_id, tags, path)

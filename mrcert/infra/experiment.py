@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from mrcert.core.methods import current_names
 from mrcert.errors import MrcertError
 from mrcert.infra.config import CONF_DIR
-from mrcert.infra.store import FileLock, ensure_sqlite_store, probe_server
+from mrcert.infra.store import FileLock, ensure_sqlite_store, moved_artifact, probe_server
 from mrcert.infra.tasks import TASKS
 
 
@@ -172,10 +172,14 @@ def run_tags(cfg: DictConfig) -> dict[str, str]:
 
 
 def artifact(client, run_id: str, path: str) -> Path:
-    """A run's artifact as a local file (downloaded when the store is remote), or a one-line error."""
+    """A run's artifact as a local file (downloaded when the store is remote; in a store folder
+    that was moved, from its own ``mlartifacts``), or a one-line error."""
     try:
         return Path(client.download_artifacts(run_id, path))
     except Exception as exc:  # noqa: BLE001 - a missing artifact, an unreachable store
+        moved = moved_artifact(run_id, path)
+        if moved is not None:
+            return moved
         raise MrcertError(f"runs:/{run_id}/{path} cannot be fetched from MLflow: {exc}") from None
 
 

@@ -228,3 +228,17 @@ def probe_server(uri: str) -> None:
         f"cannot reach the MLflow tracking server at {uri} ({reason}); start it (e.g. `make server`) "
         "or point tracking.uri at a running one"
     )
+
+
+def moved_artifact(run_id: str, path: str) -> Path | None:
+    """A run's artifact in a store folder moved after its runs were made (copied off the machine
+    that made them, or committed and cloned elsewhere): ``<store>/mlartifacts/<run id>/artifacts/
+    <path>``, where the store's own artifact root keeps it (the location its run recorded, unless
+    the folder moved). None when it is not there, or when the store is not a local folder."""
+    import mlflow
+
+    uri = mlflow.get_tracking_uri()
+    if not uri.startswith("sqlite:///"):
+        return None
+    local = Path(uri[len("sqlite:///") :]).parent / "mlartifacts" / run_id / "artifacts" / path
+    return local if local.exists() else None
