@@ -619,13 +619,13 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     cms_train = run(tmp_path, [*motion, *SETTINGS, "task=train"], "cms-train")
     run(tmp_path, [*motion, *shared, "task=certify"], "cms")
     pws_train = run(tmp_path, [*pixelwise, *SETTINGS, "task=train"], "pws-train")
-    run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
+    pws_run = run(tmp_path, [*pixelwise, *shared, "task=certify"], "pws")
     # Motion smoothing on the pixel-noise model: both methods on one base classifier.
     run(tmp_path, [*motion, *shared, "task=certify", "model.trained_for={name:pixelwise,sigma:0.25}"], "cms-noise")
     # The deterministic method on both models, the same interval and images (every 5th).
     bound = [*motion, *shared, "task=certify", "task.skip=5", "method=bound_propagation", "method.half_width=0.001"]
     budget = ["method.max_pieces=2", "method.samples=3"]
-    run(tmp_path, [*bound, *budget, "model.trained_for={name:camera_motion}"], "bp")
+    bp_run = run(tmp_path, [*bound, *budget, "model.trained_for={name:camera_motion}"], "bp")
     run(tmp_path, [*bound, *budget, "model.trained_for={name:pixelwise,sigma:0.25}"], "bp-noise")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     src = ExperimentCells(RunIndex.load("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
@@ -637,6 +637,8 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
         verified = (log.outcome == "verified") & (log.correct == 1)
         assert df.loc[row.Index, "certified accuracy"] == verified.mean()
         assert df.loc[row.Index, "left by the bound"] == (log.outcome == "unknown").sum()
+        assert (log.n0 == 0).all() and (log.n == 0).all()  # it classifies no smoothing samples
+    assert bp_run["mean_samples"] == 0
     assert list(df["base model"].iloc[3:]) == ["motion-augmented model", "pixel-noise model (sigma 0.25)"]
     df = df.iloc[:3]
     cms, noise, pws = (
@@ -657,6 +659,7 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     # give a radius above the bound), so n0 + n forward passes per frame certified.
     assert (pws.n == 40).all()
     assert (pixel["poses projected / image"], pixel["forward passes / image"]) == (3, 48)
+    assert pws_run["mean_samples"] == 48  # the run's own count of its samples is the page's
     # Why each image was left: every margin here is negative, so the bound left them all.
     assert (pws.margin < 0).all() and (pixel["left by the bound"], pixel["left by the classes"]) == (len(pws), 0)
     assert motion[["left by the bound", "left by the classes"]].isna().all()

@@ -240,13 +240,13 @@ class SmoothedClassifier:
         c_a = int(np.argmax(selection))
         count_a = int(self.sample_counts(render, n, generator, center)[c_a])
         p_a = lower_confidence_bound(count_a, n, alpha)
-        return self._certificate(c_a, count_a, n, p_a)
+        return self._certificate(c_a, count_a, n, p_a, n0)
 
-    def _certificate(self, c_a: int, count_a: int, n: int, p_a: float) -> Certificate:
+    def _certificate(self, c_a: int, count_a: int, n: int, p_a: float, n0: int = 0) -> Certificate:
         view_unit = self.method.view_unit
         if p_a < 0.5:
-            return Certificate(ABSTAIN, 0.0, count_a, p_a, n, view_unit)
-        return Certificate(c_a, self.method.radius(p_a), count_a, p_a, n, view_unit)
+            return Certificate(ABSTAIN, 0.0, count_a, p_a, n, view_unit, n0=n0)
+        return Certificate(c_a, self.method.radius(p_a), count_a, p_a, n, view_unit, n0=n0)
 
     def certify_sequential(
         self, render: Render, n0: int, n: int, alpha: float, radius: float, first_look: int, generator: torch.Generator

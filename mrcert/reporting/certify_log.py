@@ -339,3 +339,11 @@ def metrics(df: pd.DataFrame, radius: float, step: float, max_radius: float) -> 
     if "seconds" in df.columns:
         out["seconds_per_image"] = float(df["seconds"].mean())
     return out, table
+
+
+def samples(log: pd.DataFrame, n: int) -> pd.Series:
+    """Samples classified per image: the log's ``n`` (estimation samples, ``n`` per estimate: one
+    estimate per frame that pixel-wise smoothing certified) and ``n0`` class-guess samples per
+    estimate (none logged: none drawn)."""
+    n0 = log["n0"] if "n0" in log.columns else 0
+    return log["n"] + n0 * np.ceil(log["n"] / n).clip(lower=1)

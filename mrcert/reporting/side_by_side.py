@@ -37,9 +37,9 @@ MOTION_EXPERIMENT = "reproduce_quick"
 def _costs(log: pd.DataFrame, n: int) -> dict[str, float]:
     """Per image: camera poses projected (the log's ``projected``; a log written before it was
     recorded projects each of its ``n0 + n`` samples once, one frame) and forward passes
-    (``n0`` per frame certified plus the log's ``n``, the estimation samples of those frames,
-    ``n`` per frame: pixel-wise smoothing stops at the first frame that rules the interval out)."""
-    passes = log["n"] + log["n0"] * np.ceil(log["n"] / n).clip(lower=1)
+    (every sample classified: :func:`certify_log.samples`; pixel-wise smoothing stops at the first
+    frame that rules the interval out)."""
+    passes = certify_log.samples(log, n)
     projected = log["projected"] if "projected" in log and log["projected"].notna().all() else passes
     return {
         "poses projected / image": float(projected.mean()),

@@ -57,7 +57,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             "radius": float(cert.radius),
             "correct": int(cert.prediction == sample.label),
             "count_a": cert.count_a,
-            "n0": 0 if request.sequential else int(t.n0),  # sequential CERTIFY guesses on its own samples
+            "n0": cert.n0,
             "n": cert.n,
             "projected": render.projected,  # camera poses rendered for this certificate
             "margin": float(cert.margin),
@@ -96,8 +96,8 @@ class Certify(Task):
         pixel-wise smoothing's interval) and the rest of :func:`certify_log.metrics`."""
         radius = build_method(cfg).judged_at(float(cfg.motion.radius))
         metrics = certify_log.metrics(log, radius, float(cfg.motion.radius_step), radius)[0]
-        if "n" in log.columns:  # every sample classified: the class guess's n0 and the n after it
-            metrics["mean_samples"] = float((log["n"] + (log["n0"] if "n0" in log.columns else 0)).mean())
+        if "n" in log.columns:  # every sample classified: the class guesses' n0 and the n after them
+            metrics["mean_samples"] = float(certify_log.samples(log, int(cfg.task.n)).mean())
         return metrics
 
     def run(self, cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:

@@ -87,6 +87,9 @@ class Certificate:
     margin: float = float("nan")
     details: dict[str, Any] = field(default_factory=dict)
     """The values of the method's own log columns (:attr:`Method.log_columns`)."""
+    n0: int = 0
+    """Samples classified to guess the class, per estimate (Cohen's n0; none for sequential
+    CERTIFY, which guesses on its estimation samples, or for a method that draws none)."""
 
 
 @dataclass(frozen=True)

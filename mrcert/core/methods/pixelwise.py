@@ -200,4 +200,5 @@ class PixelwiseSmoothing(WholeInterval, Smoothing):
             n * len(certs),
             self.region_unit,
             piece_margin(radii, left, right, reach),
+            n0=n0,  # per frame estimated, as its n
         )
