@@ -12,7 +12,9 @@ TEXT = [
     p
     for folder in ("mrcert", "conf", "tests", "benchmarks", "docs", ".ci")
     for p in (ROOT / folder).rglob("*")
-    if p.is_file() and p.suffix in ("", ".py", ".yaml", ".md", ".txt")
+    if p.is_file()
+    and p.suffix in ("", ".py", ".yaml", ".md", ".txt")
+    and not p.is_relative_to(ROOT / "docs" / "results_store")  # runs' records (configs, logs), not text of ours
 ] + [ROOT / "README.md", ROOT / "Makefile", ROOT / "pyproject.toml"]
 SECTIONS = set(re.findall(r"^## (§\d+)", (ROOT / "docs" / "method.md").read_text(), flags=re.M))
 
