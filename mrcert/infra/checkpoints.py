@@ -95,19 +95,25 @@ def selected_epoch(path: Path, model) -> int:
 
 def local_checkpoint(ref: str) -> Path:
     """The local file of a bound ``model.checkpoint``: for a ``runs:/`` URI downloaded from
-    MLflow (from a moved store folder's own ``mlartifacts``) and verified, byte for byte, against
-    the checkpoint its run sealed (a one-line error names the run and the file otherwise: a
-    swapped file is never loaded under the run's name)."""
+    MLflow (in a store folder that moved, from its own artifact root) and verified, byte for
+    byte, against the checkpoint its run sealed (a one-line error names the run and the file
+    otherwise: a swapped file is never loaded under the run's name)."""
     if ":/" not in ref:
         return Path(ref)
     import mlflow
 
     run_id, _, name = ref[len("runs:/") :].partition("/")
+    failed = f"model.checkpoint={ref!r} cannot be fetched from MLflow"
     try:
         tags = mlflow.MlflowClient().get_run(run_id).data.tags
-        path = moved_artifact(run_id, name) or Path(mlflow.artifacts.download_artifacts(artifact_uri=ref))
-    except Exception as exc:  # missing artifact, unreachable store
-        raise MrcertError(f"model.checkpoint={ref!r} cannot be fetched from MLflow: {exc}") from None
+    except Exception as exc:  # an unknown run, an unreachable store
+        raise MrcertError(f"{failed}: {exc}") from None
+    try:
+        path = Path(mlflow.artifacts.download_artifacts(artifact_uri=ref))
+    except Exception as exc:  # a missing artifact, unless the store folder moved
+        path = moved_artifact(run_id, name)
+        if path is None:
+            raise MrcertError(f"{failed}: {exc}") from None
     seals.verify(run_id, tags, path)
     return path
 

@@ -199,7 +199,7 @@ def _build(db: Path) -> None:
 
     tmp = db.with_name(f".{db.name}.tmp-{os.getpid()}")
     try:
-        store = SqlAlchemyStore(f"sqlite:///{tmp}", default_artifact_root=str(db.parent / "mlartifacts"))
+        store = SqlAlchemyStore(f"sqlite:///{tmp}", default_artifact_root=str(db.parent / ARTIFACT_ROOT))
         store.engine.dispose()
         os.replace(tmp, db)
     except (OperationalError, OSError) as exc:  # a full disk, a file size limit, a read-only folder
@@ -230,15 +230,24 @@ def probe_server(uri: str) -> None:
     )
 
 
+ARTIFACT_ROOT = "mlartifacts"
+"""The folder beside ``mlflow.db`` under which a store keeps its runs' artifacts."""
+
+
+def run_artifacts(folder: Path, run_id: str) -> Path:
+    """Where the store in ``folder`` keeps a run's artifacts (its own artifact root)."""
+    return folder / ARTIFACT_ROOT / run_id / "artifacts"
+
+
 def moved_artifact(run_id: str, path: str) -> Path | None:
     """A run's artifact in a store folder moved after its runs were made (copied off the machine
-    that made them, or committed and cloned elsewhere): ``<store>/mlartifacts/<run id>/artifacts/
-    <path>``, where the store's own artifact root keeps it (the location its run recorded, unless
-    the folder moved). None when it is not there, or when the store is not a local folder."""
+    that made them, or committed and cloned elsewhere): under :func:`run_artifacts` of the
+    folder the tracking URI names, for a run whose recorded location is gone. None when it is
+    not there either, or when the store is not a local folder."""
     import mlflow
 
     uri = mlflow.get_tracking_uri()
     if not uri.startswith("sqlite:///"):
         return None
-    local = Path(uri[len("sqlite:///") :]).parent / "mlartifacts" / run_id / "artifacts" / path
+    local = run_artifacts(Path(uri[len("sqlite:///") :]).parent, run_id) / path
     return local if local.exists() else None

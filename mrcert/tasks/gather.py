@@ -44,6 +44,7 @@ from mrcert.infra.experiment import ensure_experiment
 from mrcert.infra.identity import Identity
 from mrcert.infra.key_migration import GATHERED, migrate, seal_finished
 from mrcert.infra.run_store import FINISHED, all_runs
+from mrcert.infra.store import run_artifacts
 from mrcert.infra.tasks import HELPER_IGNORES, Task
 from mrcert.infra.tracking import RunContext
 
@@ -79,7 +80,7 @@ def _artifacts(client, run, folder: Path | None, into: Path) -> bool:
     """Copy a source run's artifacts into ``into``; False when they are gone."""
     uri = run.info.artifact_uri
     recorded = Path(uri[len("file://") :]) if uri.startswith("file://") else Path(uri)
-    moved = folder / "mlartifacts" / run.info.run_id / "artifacts" if folder is not None else None
+    moved = run_artifacts(folder, run.info.run_id) if folder is not None else None
     for local in (recorded, moved):
         if local is not None and local.is_dir():
             shutil.copytree(local, into, dirs_exist_ok=True)
