@@ -16,6 +16,7 @@ import pytest
 import mrcert
 from mrcert.__main__ import bind, run_task
 from mrcert.infra.identity import file_identity
+from mrcert.infra.runtime import EVIDENCE_STORE, checkout_version
 from mrcert.reporting.certify_log import read_log
 from tests.conftest import ROOT, TINY, compose_cfg, run_cli
 
@@ -82,6 +83,27 @@ def test_skip_finished_reuses_only_a_run_of_the_same_model_and_ignores_batch_siz
     assert len(recorded) == 1 and recorded.pop().split()[0] == mrcert.__version__
     if head.returncode == 0:
         assert all(f"git:{head.stdout.strip()}" in r.data.tags["mrcert.code_version"] for r in done)
+
+
+def test_the_code_version_is_dirty_for_a_changed_code_file_but_not_for_the_evidence_store(tmp_path):
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(tmp_path), *args], capture_output=True, text=True, check=True).stdout
+
+    code, record = tmp_path / "mrcert" / "core.py", tmp_path / EVIDENCE_STORE / "mlflow.db"
+    for path in (code, record):
+        path.parent.mkdir(parents=True)
+        path.write_text("one")
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
+    clean = f"0.1.0 git:{git('rev-parse', 'HEAD').strip()}"
+    assert checkout_version(tmp_path, "0.1.0") == clean
+    record.write_text("two")  # runs gathered into the evidence store: still the commit's code
+    (tmp_path / "untracked.py").write_text("x")
+    assert checkout_version(tmp_path, "0.1.0") == clean
+    code.write_text("two")
+    assert checkout_version(tmp_path, "0.1.0") == clean + "+dirty"
+    assert checkout_version(tmp_path / "mrcert", "0.1.0") == "0.1.0"  # not a checkout's root
 
 
 def row_sealed(out: Path) -> bool:

@@ -48,13 +48,23 @@ def render_batch(batch: int, height: int, width: int) -> int:
     return batch * max(1, RENDER_PIXELS // (batch * height * width))
 
 
+EVIDENCE_STORE = "docs/results_store"
+"""The store committed beside the evidence page, inside the checkout: its files are the records of
+runs, not code, so a change to them leaves the code version clean."""
+
+
 @functools.cache
 def code_version() -> str:
     """mrcert's version and, run from a git checkout, its commit (``+dirty`` when tracked files
-    differ from it): ``0.1.0 git:1f02dea...`` or ``0.1.0`` for an installed copy."""
+    other than the :data:`EVIDENCE_STORE` differ from it): ``0.1.0 git:1f02dea...`` or ``0.1.0`` for
+    an installed copy."""
     from mrcert import __version__
 
-    root = Path(__file__).resolve().parents[2]
+    return checkout_version(Path(__file__).resolve().parents[2], __version__)
+
+
+def checkout_version(root: Path, version: str) -> str:
+    """``version`` and the commit of the git checkout at ``root`` (:func:`code_version`)."""
 
     def git(*args: str) -> str | None:
         try:
@@ -65,9 +75,9 @@ def code_version() -> str:
 
     commit = git("rev-parse", "HEAD") if (root / ".git").exists() else None
     if not commit:
-        return __version__
-    dirty = git("status", "--porcelain", "--untracked-files=no")
-    return f"{__version__} git:{commit}{'+dirty' if dirty else ''}"
+        return version
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".", f":(exclude){EVIDENCE_STORE}")
+    return f"{version} git:{commit}{'+dirty' if dirty else ''}"
 
 
 def machine() -> str:
