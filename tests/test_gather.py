@@ -13,6 +13,7 @@ import pytest
 
 from mrcert.infra.checkpoints import local_checkpoint, read_checkpoint
 from mrcert.infra.runtime import machine
+from mrcert.infra.store import run_artifacts
 from mrcert.reporting import paper_tables, results_page
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
@@ -205,3 +206,8 @@ def test_a_store_folder_moved_elsewhere_is_read_in_place(gpu_store, tmp_path):
     log = here.index.log(cell)  # the per-image log, read from the moved folder
     assert log is not None and len(log) > 0, cell.note
     assert local_checkpoint(cell.cfg.model.checkpoint).is_relative_to(moved)
+    # A run made in the moved store keeps its files there, not in the folder the store was made in.
+    run(moved, [*PAPER, "task=certify", "task.batch_size=64", "task.n=100", "task.skip=3"], "certify-after-move")
+    new = mlflow.search_runs(search_all_experiments=True, filter_string="params.`task.n` = '100'", output_format="list")
+    assert len(new) == 1 and new[0].info.artifact_uri == run_artifacts(moved, new[0].info.run_id).as_uri()
+    assert (run_artifacts(moved, new[0].info.run_id) / "certify.tsv").exists() and not made.exists()

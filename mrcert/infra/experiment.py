@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -14,8 +15,10 @@ from omegaconf import DictConfig, OmegaConf
 from mrcert.core.methods import current_names
 from mrcert.errors import MrcertError
 from mrcert.infra.config import CONF_DIR
-from mrcert.infra.store import FileLock, ensure_sqlite_store, moved_artifact, probe_server
+from mrcert.infra.store import FileLock, ensure_sqlite_store, moved_artifact, probe_server, relocate_artifacts
 from mrcert.infra.tasks import TASKS
+
+log = logging.getLogger(__name__)
 
 
 def configure(tracking: DictConfig):
@@ -57,6 +60,7 @@ def ensure_experiment(tracking: DictConfig) -> str:
             _untag_parents(mlflow, exp.experiment_id)
         for k, v in stale.items():
             client.set_experiment_tag(exp.experiment_id, k, v)
+        follow_moved_store(tracking, exp)
         return exp.experiment_id
     location = tracking.artifact_location
     if location:
@@ -77,6 +81,25 @@ def ensure_experiment(tracking: DictConfig) -> str:
         if exp is None:
             raise
         return exp.experiment_id
+
+
+def follow_moved_store(tracking: DictConfig, exp) -> None:
+    """A SQLite store whose folder moved (copied off the machine that made it, committed and cloned
+    elsewhere) still names the old folder as its experiment's artifact location, where MLflow would
+    write every new run's files, or fail to: it is set to the configured ``tracking.artifact_location``
+    (the store's own ``mlartifacts``). Runs made before the move are read in place
+    (:func:`mrcert.infra.store.moved_artifact`)."""
+    uri, location = str(tracking.uri), tracking.artifact_location
+    if not (uri.startswith("sqlite:///") and location):
+        return
+    wanted = Path(location).as_uri()
+    if exp.artifact_location == wanted:
+        return
+    Path(location).mkdir(parents=True, exist_ok=True)
+    db = sqlite_path(uri)
+    with FileLock(db.with_name(f".{db.name}.lock")):
+        relocate_artifacts(db, exp.experiment_id, wanted)
+    log.info("the store's runs kept their files in %s; new runs keep them in %s", exp.artifact_location, wanted)
 
 
 RUNS_VIEW = "mrcert"

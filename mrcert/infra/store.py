@@ -239,6 +239,15 @@ def run_artifacts(folder: Path, run_id: str) -> Path:
     return folder / ARTIFACT_ROOT / run_id / "artifacts"
 
 
+def relocate_artifacts(db: Path, experiment_id: str, location: str) -> None:
+    """Set the artifact location of experiment ``experiment_id`` in the SQLite store ``db`` (MLflow
+    has no call for it): for a store folder that moved, whose experiment still names the folder it
+    was made in, new runs' files go into its own folder (the caller holds the store's lock)."""
+    with _opened(db) as conn:
+        update = "UPDATE experiments SET artifact_location = ? WHERE experiment_id = ?"
+        conn.execute(update, (location, int(experiment_id)))
+
+
 def moved_artifact(run_id: str, path: str) -> Path | None:
     """A run's artifact in a store folder moved after its runs were made (copied off the machine
     that made them, or committed and cloned elsewhere): under :func:`run_artifacts` of the
