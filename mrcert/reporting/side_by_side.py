@@ -235,15 +235,17 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def figure(df: pd.DataFrame):
-    """Per axis: motion smoothing's certified accuracy against radius (step curve, on the
-    pixel-wise runs' images) and pixel-wise smoothing's at each interval (points)."""
+    """Per axis: motion smoothing's certified accuracy against radius (step curves, on the
+    pixel-wise runs' images), and pixel-wise smoothing's (circles) and bound propagation's
+    (hollow squares) at each interval; one colour per base model, the legends under the plots."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     axes = list(dict.fromkeys(df["axis"]))
-    fig, grid = plt.subplots(1, len(axes), figsize=(max(7, 5 * len(axes)), 3.8), squeeze=False)
+    colours = {m: f"C{i}" for i, m in enumerate(dict.fromkeys(df["base model"]))}
+    fig, grid = plt.subplots(1, len(axes), figsize=(max(7, 5.5 * len(axes)), 6.2), squeeze=False)
     for ax, axis in zip(grid.ravel(), axes, strict=True):
         rows = df[df["axis"] == axis]
         smallest = float(rows["half_width"].min())
@@ -251,14 +253,27 @@ def figure(df: pd.DataFrame):
             radii, acc = certify_log.curve(row["log"])
             radii = np.maximum(radii, smallest / 10)  # log scale: radius 0 drawn at the left edge
             label = f"{row['method']}, {row['base model']}"
-            ax.step(np.append(radii, radii[-1] * 1.05), np.append(acc, 0.0), where="pre", label=label)
+            x, y = np.append(radii, radii[-1] * 1.05), np.append(acc, 0.0)
+            ax.step(x, y, where="pre", label=label, color=colours[row["base model"]])
         for (method, model), group in rows[rows["kind"] != "smoothed over motions"].groupby(["method", "base model"]):
-            marker = "o" if group["frames"].notna().all() else "s"
+            frames = group["frames"].dropna().unique()
+            label = f"{method}, {model}, whole interval" + (f", {int(frames[0])} frames" if len(frames) == 1 else "")
+            if group["frames"].notna().all():  # pixel-wise smoothing
+                style = {"marker": "o", "markersize": 6}
+            else:  # bound propagation: hollow, so that a circle on the same point shows through
+                style = {"marker": "s", "markersize": 11, "fillstyle": "none", "markeredgewidth": 1.5}
             ax.plot(
-                group["half_width"], group["certified accuracy"], marker, label=f"{method}, {model}, whole interval"
+                group["half_width"],
+                group["certified accuracy"],
+                linestyle="none",
+                color=colours[model],
+                label=label,
+                **style,
             )
-            for _, row in group[group["frames"].notna()].iterrows():
-                ax.annotate(f"{int(row['frames'])} frames", (row["half_width"], row["certified accuracy"]), fontsize=7)
+            if len(frames) > 1:  # the frames differ between intervals: each point says its own
+                for _, row in group[group["frames"].notna()].iterrows():
+                    where = (row["half_width"], row["certified accuracy"])
+                    ax.annotate(f"{int(row['frames'])} frames", where, fontsize=7)
         ax.set(
             xscale="log",
             xlabel=f"radius / half-width of the interval ({unit(axis)})",
@@ -267,7 +282,7 @@ def figure(df: pd.DataFrame):
             title=f"{axis}, {rows['images'].iloc[0]} test images",
         )
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)
     fig.suptitle("Motion smoothing, pixel-wise smoothing and bound propagation, same test views")
     fig.tight_layout()
     return fig
