@@ -393,6 +393,33 @@ def test_a_budget_spent_leaves_the_image_unknown_with_its_counts():
         assert cert.details["outcome"] == "unknown" and cert.details["bound_passes"] == 4 and cert.radius == 0.0
 
 
+def test_the_profiles_budget_is_pieces_so_a_slow_machine_gets_the_same_answer(monkeypatch):
+    """An image the quick profile cannot decide (its class holds at 3,000 sampled poses, a hair
+    above the threshold, beyond what the bounds resolve) uses up its budget of pieces: the same
+    answer, bound passes and pieces with the machine's clock running a million times slower."""
+    from types import SimpleNamespace
+
+    from mrcert.core.methods import bound_propagation
+
+    sample = sample_for("tz", 0.02)
+    with torch.no_grad():
+        window = sample.renderer()(piece_poses("tz", -0.02, 0.02, 3000))[:, :, 30:60, 60:100].double().mean((1, 2, 3))
+    lowest = float(window.min())
+    for profile in ("quick", "paper"):
+        assert compose_cfg([f"profile={profile}", "method=bound_propagation"]).method.seconds == float("inf")
+    m = compose_cfg(["profile=quick", "method=bound_propagation"]).method
+
+    def answer() -> dict:
+        made = verifier(Brightness(lowest - 1e-6), "tz", 0.02, max_pieces=m.max_pieces, seconds=m.seconds, samples=2)
+        cert = made.certify_sample(sample.renderer(), REQUEST, torch.Generator())
+        return {k: cert.details[k] for k in ("outcome", "bound_passes", "pieces")}
+
+    here = answer()
+    clock = iter(itertools.count(step=1e6))
+    monkeypatch.setattr(bound_propagation, "time", SimpleNamespace(perf_counter=lambda: float(next(clock))))
+    assert answer() == here and here["outcome"] == "unknown" and here["bound_passes"] == m.max_pieces
+
+
 def test_tasks_it_cannot_serve_are_refused_naming_what_it_serves():
     from mrcert.infra.config import validate
 
