@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from mrcert.core.methods import current_names
 from mrcert.errors import MrcertError
 from mrcert.infra.config import CONF_DIR
-from mrcert.infra.store import FileLock, ensure_sqlite_store, moved_artifact, probe_server, relocate_artifacts
+from mrcert.infra.store import ensure_sqlite_store, moved_artifact, probe_server, relocate_artifacts, store_lock
 from mrcert.infra.tasks import TASKS
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,7 @@ def ensure_experiment(tracking: DictConfig) -> str:
     uri = str(tracking.uri)
     if uri.startswith("sqlite:///"):  # one creator at a time; the others find it made
         db = sqlite_path(uri)
-        with FileLock(db.with_name(f".{db.name}.lock")):
+        with store_lock(db):
             exp = client.get_experiment_by_name(tracking.experiment)
             if exp is not None:
                 return exp.experiment_id
@@ -97,7 +97,7 @@ def follow_moved_store(tracking: DictConfig, exp) -> None:
         return
     Path(location).mkdir(parents=True, exist_ok=True)
     db = sqlite_path(uri)
-    with FileLock(db.with_name(f".{db.name}.lock")):
+    with store_lock(db):
         relocate_artifacts(db, exp.experiment_id, wanted)
     log.info("the store's runs kept their files in %s; new runs keep them in %s", exp.artifact_location, wanted)
 

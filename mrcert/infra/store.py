@@ -179,11 +179,17 @@ def check_sqlite_store(db: Path) -> None:
     )
 
 
+def store_lock(db: Path) -> FileLock:
+    """The cross-process lock of the SQLite store ``db``, held while its file or its experiment's
+    settings are made or changed."""
+    return FileLock(db.with_name(f".{db.name}.lock"))
+
+
 def ensure_sqlite_store(db: Path) -> None:
     """Create the SQLite store ``db`` atomically if it does not exist, then check it."""
     db = Path(db)
     if not db.exists():
-        with FileLock(db.with_name(f".{db.name}.lock")):
+        with store_lock(db):
             if not db.exists():
                 _build(db)
     check_sqlite_store(db)
