@@ -664,11 +664,34 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     assert (pws.margin < 0).all() and (pixel["left by the bound"], pixel["left by the classes"]) == (len(pws), 0)
     assert motion[["left by the bound", "left by the classes"]].isna().all()
     assert pixel["seconds / image"] == pws.seconds.mean()
-    # Seconds per image are a pace on one machine: each row names the machine its run ran on.
+    # The page's tables show each run once. A motion smoothing run serves every interval: with a
+    # second, wider interval it is a second column of the comparison, not a second row.
+    wider = df.iloc[:2].assign(half_width=0.01, interval="+-0.01 m")
+    shown = side_by_side.table(pd.concat([df, wider]))
+    assert list(shown["method"].str.split().str[0]) == ["motion", "motion", "pixel-wise"]
+    assert list(shown["+-0.01"]) == [
+        *(f"{r['certified accuracy']:.3f} ({r.low:.2f}-{r.high:.2f})" for r in (motion, on_noise)),
+        "",
+    ]
+    costs = side_by_side.costs(pd.concat([df, wider]))
+    assert list(costs["interval"]) == ["every a", "every a", "+-0.001 m"]
+    assert list(costs["seconds / image"]) == [f"{r['seconds / image']:.1f}" for r in (motion, on_noise, pixel)]
+    assert "machine" not in costs  # one machine: the page names it once
+    # Every cell the page shows names its run and its model's train run in the page's sources.
     from mrcert.infra.runtime import machine
+    from mrcert.reporting.results_page import side_by_side_section
 
-    shown = side_by_side.table(df)
-    assert list(shown["machine"]) == [machine()] * 3
+    runs_by_dir = src.index.df.set_index("tags.mrcert.output_dir")["run_id"]
+    cms_train_id, pws_train_id = (runs_by_dir[str(tmp_path / "runs" / n)] for n in ("cms-train", "pws-train"))
+    assert list(df["train_run"]) == [cms_train_id, pws_train_id, pws_train_id]
+
+    section = side_by_side_section(src, tmp_path / "page.md")
+    recorded = [r for r in src.provenance if r["table"] == "side_by_side"]
+    assert {r["runs"] for r in recorded} == set(df["run_id"]) and {r["model runs"] for r in recorded} == set(
+        df["train_run"]
+    )
+    assert set(src.cited_runs()) == {*df["run_id"], cms_train_id, pws_train_id}
+    assert section["machine"] == machine()
     # Each certified accuracy with its exact 95% interval (statsmodels' Clopper-Pearson as the oracle).
     from statsmodels.stats.proportion import proportion_confint
 
@@ -683,7 +706,9 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
             pws_train["test_acc_clean"],
             pws_train["test_acc"],
         )
-    assert list(shown["95% interval"]) == [f"{a:.2f}-{b:.2f}" for a, b in zip(df["low"], df["high"], strict=True)]
+    assert list(shown["+-0.001"]) == [
+        f"{a:.3f} ({b:.2f}-{c:.2f})" for a, b, c in zip(df["certified accuracy"], df["low"], df["high"], strict=True)
+    ]
     fig = side_by_side.figure(df)
     assert len(fig.axes[0].lines) == 3  # motion smoothing's curves (two models) and pixel-wise smoothing's point
 

@@ -117,7 +117,14 @@ class ExperimentCells:
         values = [self.index.metric(c, metric) for c in cells]
         ok = [v for v in values if not np.isnan(v)]
         value = float(np.mean(ok)) if ok and len(ok) == len(values) else float("nan")
+        note = "; ".join(sorted({c.note for c in cells if c.note}))
         runs = [rid for c in cells for rid in c.run_ids]
+        return self.record(table, row, column, value, runs, [c.train_run for c in cells if c.train_run], note)
+
+    def record(self, table: str, row, column: str, value, runs, models=(), note: str = ""):
+        """Record that ``runs`` are behind the cell ``(table, row, column)`` showing ``value``,
+        with ``models``, the train runs in this store of the models they evaluated (a section of
+        the page that reads runs itself records its cells here); returns ``value``."""
         self.provenance.append(
             {
                 "table": table,
@@ -126,12 +133,18 @@ class ExperimentCells:
                 "value": value,
                 "runs": " ".join(runs),
                 "links": " ".join(self.link.format(run_id=r) for r in runs),
-                "note": "; ".join(sorted({c.note for c in cells if c.note})),
+                "model runs": " ".join(dict.fromkeys(models)),
+                "note": note,
             }
         )
         return value
 
+    def cited_runs(self) -> list[str]:
+        """Every run behind a recorded cell and every train run of the models they evaluated,
+        each once, in order of first mention."""
+        return list(dict.fromkeys(r for p in self.provenance for r in f"{p['runs']} {p['model runs']}".split()))
+
     def sources(self, table: str) -> pd.DataFrame:
         """Per cell of ``table``: row, column, value, the runs behind it, their links, why it is empty."""
         rows = [{k: v for k, v in p.items() if k != "table"} for p in self.provenance if p["table"] == table]
-        return pd.DataFrame(rows, columns=["row", "column", "value", "runs", "links", "note"])
+        return pd.DataFrame(rows, columns=["row", "column", "value", "runs", "model runs", "links", "note"])

@@ -49,12 +49,15 @@ def runs(src: ExperimentCells, experiments: tuple[str, ...] = EXPERIMENTS) -> pd
     return pd.DataFrame(rows)
 
 
+KEYS = ["separation rule", "model", "training poses per class"]
+"""What a row of :func:`table` is: the runs with these in common (their seeds)."""
+
+
 def table(df: pd.DataFrame) -> pd.DataFrame:
     """Median over seeds (and the range of the test accuracy) per rule, model and training poses;
     `every` first, the models in the order of the runs (the experiments' order)."""
-    keys = ["separation rule", "model", "training poses per class"]
     order = {"separation rule": {"every": 0, "any": 1}, "model": {m: k for k, m in enumerate(pd.unique(df["model"]))}}
-    g = df.groupby(keys, sort=True)
+    g = df.groupby(KEYS, sort=True)
     out = pd.DataFrame(
         {
             "seeds": g["seed"].count(),
@@ -63,7 +66,7 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
             "test accuracy (min-max)": g["test accuracy"].agg(lambda s: f"{s.min():.3f}-{s.max():.3f}"),
         }
     ).reset_index()
-    return out.sort_values(keys, key=lambda c: c.map(order[c.name]) if c.name in order else c)
+    return out.sort_values(KEYS, key=lambda c: c.map(order[c.name]) if c.name in order else c)
 
 
 def histories(df: pd.DataFrame, metrics=("val_acc", "epoch_test_acc")) -> dict[str, dict[str, np.ndarray]]:

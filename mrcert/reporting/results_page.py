@@ -128,7 +128,7 @@ def _counted(holds: list[bool], rows: list[str]) -> dict:
 
 def base_models(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
     """Each evaluated model's training record: accuracy on its validation poses (what selected
-    ``best.pt``) and on the test images (measured once, after training)."""
+    ``best.pt``) and on the test images (measured once, after training), and its train run."""
     rows = {}
     for j in jobs:
         run = j.certify.train_run if j.certify.filled else None  # None: an import
@@ -141,12 +141,35 @@ def base_models(src: ExperimentCells, jobs: list[Job]) -> pd.DataFrame:
             "model": f"{j.arch} {label}",
             "validation accuracy": metrics.get("best_val_acc", np.nan),
             "test accuracy": metrics.get("test_acc", np.nan),
+            TRAIN_RUN: run,
         }
     return pd.DataFrame(list(rows.values()))
 
 
+TRAIN_RUN = "train run"
+"""The column of :func:`base_models` that names each model's train run (recorded, not shown)."""
+
+
+def record_models(src: ExperimentCells, models: pd.DataFrame) -> pd.DataFrame:
+    """Record each base model's accuracies with its train run; the table as the page shows it."""
+    for _, m in models.iterrows():
+        for column in ("validation accuracy", "test accuracy"):
+            src.record("base_models", m["model"], column, m[column], [m[TRAIN_RUN]])
+    return models.drop(columns=TRAIN_RUN, errors="ignore")
+
+
 # The paper's model whose Table 3 values stand beside ours on the page, whatever our architecture.
 PAPER_ARCH = "resnet18"
+
+
+def record_curve(src: ExperimentCells, curve: pd.DataFrame) -> pd.DataFrame:
+    """The learning curve's table, each row's test accuracy recorded with the train runs behind it."""
+    shown = learning_curve.table(curve)
+    for _, row in shown.iterrows():
+        keys = [row[k] for k in learning_curve.KEYS]
+        runs = curve[(curve[learning_curve.KEYS] == keys).all(axis=1)]["run_id"]
+        src.record("learning_curve", tuple(keys), "test accuracy (median)", row["test accuracy (median)"], list(runs))
+    return shown
 
 
 def curve_summary(models: pd.DataFrame, curve: pd.DataFrame) -> dict:
@@ -428,11 +451,19 @@ def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
         columns=["axis", "half-width (m)", "method", "model", "pixel sigma", "frames", "certified accuracy"],
     )
     pixelwise = pair[pair["frames"].notna()]
+    for _, r in pair.drop_duplicates(["interval", "run_id"]).iterrows():
+        row = (r["axis"], r["interval"], r["method"], r["base model"])
+        models = [r["train_run"]] if isinstance(r["train_run"], str) else []
+        for column in ("certified accuracy", "seconds / image"):
+            src.record("side_by_side", row, column, r[column], [r["run_id"]], models)
+    costs = side_by_side.costs(pair)
     return {
         "experiment": side_by_side.EXPERIMENT,
         "commands": make_stage("side-by-side", src.profile),
         "share": _share(int(pixelwise.iloc[0]["skip"])),
         "table": markdown(as_text(side_by_side.table(pair))),
+        "costs": markdown(as_text(costs)),
+        "machine": None if "machine" in costs else str(pair["machine"].iloc[0]),
         "picture": plot.name,
         "reported": markdown(as_text(reported)),
     }
@@ -464,7 +495,10 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
     profiles = src.index.df.get("tags.mrcert.profile", pd.Series(dtype=str))
     if not (profiles == PAPER_PROFILE).any():
         return missing
-    paper = ExperimentCells(src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link)
+    # Its cells are recorded with the page's, so that the page's sources name their runs too.
+    paper = ExperimentCells(
+        src.index, profile=PAPER_PROFILE, overrides=src.overrides, link=src.link, provenance=src.provenance
+    )
     every = jobs_of(paper, experiment)
     filled = {
         (AXIS_NAMES.get(j.axis, j.axis), model_label(j.arch, j.variant)): j
@@ -490,7 +524,7 @@ def paper_profile_section(src: ExperimentCells) -> dict | None:
         "alpha": cfg.task.alpha,
         "images": _images(paper, jobs[0].certify),
         "table": markdown(as_text(table.loc[list(filled)])),
-        "models": markdown(as_text(base_models(paper, jobs))),
+        "models": markdown(as_text(record_models(paper, base_models(paper, jobs)))),
         "times": shown_times(stage_times(paper)),
         "estimate": profile_estimate(paper, experiment, every),
     }
@@ -572,7 +606,7 @@ def page_context(
     belong to the page are written beside it)."""
     jobs = jobs_of(src, experiment)
     filled = any(c.filled for j in jobs for c in (j.certify, j.smooth, j.attack))
-    models = base_models(src, jobs)
+    models = record_models(src, base_models(src, jobs))
     curve = learning_curve.runs(src)
     curve_section = None
     if len(curve):
@@ -584,7 +618,7 @@ def page_context(
             "shown": len(curve),
             "defined": sum(len(sweep_combos(e)) for e in learning_curve.EXPERIMENTS),
             "separation": separation(protocol),
-            "table": markdown(as_text(learning_curve.table(curve))),
+            "table": markdown(as_text(record_curve(src, curve))),
             "picture": plot.name,
         } | curve_summary(models, curve)
     low, high = paper_results.base_benign_range(PAPER_ARCH)
@@ -593,7 +627,8 @@ def page_context(
     paper_profile = paper_profile_section(src)
     times = stage_times(src) if filled else pd.DataFrame(columns=STAGE_COLUMNS)
     machines = sorted({str(m) for m in src.index.df.get("tags.mrcert.machine", pd.Series(dtype=str)).dropna()})
-    codes = sorted({str(c) for c in src.index.df.get("tags.mrcert.code_version", pd.Series(dtype=str)).dropna()})
+    versions = (src.index.run_tags(r) or {} for r in src.cited_runs())
+    codes = sorted({v["mrcert.code_version"] for v in versions if "mrcert.code_version" in v})
     return {
         "experiment": experiment,
         "reproduction": experiment == REPRODUCTION.format(profile=src.profile),
@@ -643,6 +678,7 @@ def write_page(
     picture = page.with_name(f"{page.stem}_certified_accuracy_vs_radius.png")
     shutil.copyfile(figure, picture)
     page.write_text(render(page_context(src, experiment, table, picture.name, page, command, views)))
-    sources = pd.DataFrame(src.provenance, columns=["table", "row", "column", "value", "runs", "links", "note"])
+    columns = ["table", "row", "column", "value", "runs", "model runs", "links", "note"]
+    sources = pd.DataFrame(src.provenance, columns=columns)
     sources.drop(columns="links").to_csv(page.with_name(f"{page.stem}_sources.csv"), index=False, na_rep="")
     return page

@@ -32,6 +32,9 @@ from mrcert.reporting.experiment_cells import ExperimentCells, sweep_combos
 EXPERIMENT = "side_by_side"
 MOTION_EXPERIMENT = "reproduce_quick"
 """Where the motion-augmented models' certify runs come from (the same views, axis and model)."""
+KINDS = MOTION_KIND, PIXEL_KIND, BOUND_KIND = ("smoothed over motions", "smoothed over pixels", "deterministic")
+"""What each row's method certifies, in the page's order: camera motion smoothing, pixel-wise
+smoothing, bound propagation."""
 
 
 def _costs(log: pd.DataFrame, n: int) -> dict[str, float]:
@@ -114,6 +117,7 @@ def _beside(src: ExperimentCells, overrides, images: set, fixed: dict, noisy: bo
         **costs(same, cell.cfg),
         "machine": _machine(src, cell.run_ids[0]),
         "run_id": cell.run_ids[0],
+        "train_run": cell.train_run,
         "log": same,
     }
     return [fixed | row]
@@ -163,14 +167,14 @@ def runs(
         )
         for trained, extra, noisy in own:
             rows += _beside(
-                src, (*where, *extra), images, common | {"kind": "smoothed over motions", "base model": trained}, noisy,
+                src, (*where, *extra), images, common | {"kind": MOTION_KIND, "base model": trained}, noisy,
                 lambda c: f"motion smoothing (sigma {float(c.motion.sigma):g} {unit(str(c.motion.axis))})",
                 lambda same, c: _costs(same, int(c.task.n)),
             )  # fmt: skip
         rows.append(
             common
             | {
-                "kind": "smoothed over pixels",
+                "kind": PIXEL_KIND,
                 "method": f"pixel-wise smoothing (sigma {float(cfg.method.sigma):g})",
                 "base model": noise,
                 "frames": frames,
@@ -180,6 +184,7 @@ def runs(
                 **_why_not(log),
                 "machine": _machine(src, pixelwise.run_ids[0]),
                 "run_id": pixelwise.run_ids[0],
+                "train_run": pixelwise.train_run,
                 "log": log,
             }
         )
@@ -187,29 +192,64 @@ def runs(
             chosen = extra or (f"model.trained_for={{name:{motion_method}}}",)
             overrides = (f"task.skip={int(cfg.task.skip)}", *deterministic, f"method.half_width={half_width}", *chosen)
             rows += _beside(
-                src, (*where, *overrides), images, common | {"kind": "deterministic", "base model": trained}, noisy,
+                src, (*where, *overrides), images, common | {"kind": BOUND_KIND, "base model": trained}, noisy,
                 lambda c: f"bound propagation ({c.method.relaxation})",
                 lambda same, c: _deterministic(same),
             )  # fmt: skip
     return pd.DataFrame(rows)
 
 
+def _shown_once(df: pd.DataFrame) -> pd.DataFrame:
+    """Each run once per interval (a run beside the pixel-wise runs of both pixel sigmas appears
+    under each), by axis, method, base model and interval."""
+    order = {kind: k for k, kind in enumerate(KINDS)}
+    return df.drop_duplicates(["interval", "run_id"]).sort_values(
+        ["axis", "kind", "base model", "half_width"], key=lambda c: c.map(order) if c.name == "kind" else c
+    )
+
+
 def table(df: pd.DataFrame) -> pd.DataFrame:
-    """The page's table: one row per method, base model and interval (a run beside the pixel-wise
-    runs of both pixel sigmas is shown once), by axis and interval."""
-    df = df.drop_duplicates(["interval", "run_id"]).sort_values(["axis", "half_width"], kind="stable")
+    """The page's comparison: one row per axis, method and base model (with the base model's
+    accuracy), one column per half-width ``a`` of the interval: the certified accuracy at ``a``
+    with its exact 95% interval, empty where that run has not finished."""
+    df = _shown_once(df)
+    keys = ["axis", "method", "base model"]
+    widths = sorted(df["half_width"].unique())
+    rows = []
+    for (axis, method, model), group in df.groupby(keys, sort=False):
+        first = group.iloc[0]
+        row = {
+            "axis": f"{axis} ({unit(axis)})",
+            "method": method,
+            "base model": model,
+            "base clean accuracy": first["base clean accuracy"],
+            "base noisy accuracy": first["base noisy accuracy"],
+        }
+        by_width = {float(r["half_width"]): r for _, r in group.iterrows()}
+        for a in widths:
+            r = by_width.get(float(a))
+            row[f"+-{a:g}"] = "" if r is None else f"{r['certified accuracy']:.3f} ({r['low']:.2f}-{r['high']:.2f})"
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    for column in ("base clean accuracy", "base noisy accuracy"):
+        out[column] = out[column].map(lambda v: "-" if pd.isna(v) else f"{v:.3f}")
+    return out
+
+
+def costs(df: pd.DataFrame) -> pd.DataFrame:
+    """The runs behind :func:`table`, each once: what it cost per image and, for the methods that
+    certify an interval, the images it left uncertified by cause. A motion smoothing run certifies
+    a radius per image, so it serves every interval (``every a``). The machine column is there
+    when the runs ran on more than one machine."""
+    df = _shown_once(df).drop_duplicates("run_id")
     out = df[
         [
             "axis",
             "interval",
             "method",
-            "model",
             "base model",
-            "base clean accuracy",
-            "base noisy accuracy",
             "frames",
             "images",
-            "certified accuracy",
             "left by the bound",
             "left by the classes",
             "poses projected / image",
@@ -218,20 +258,13 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
             "machine",
         ]
     ].copy()
-    out.insert(
-        out.columns.get_loc("certified accuracy") + 1,
-        "95% interval",
-        [f"{a:.2f}-{b:.2f}" for a, b in zip(df["low"], df["high"], strict=True)],
-    )
-    for column in ("base clean accuracy", "base noisy accuracy"):
-        out[column] = df[column].map(lambda v: "-" if pd.isna(v) else f"{v:.3f}")
+    out.loc[df["kind"] == MOTION_KIND, "interval"] = "every a"
     for column in ("frames", "left by the bound", "left by the classes"):
         out[column] = out[column].map(lambda f: "-" if pd.isna(f) else str(int(f)))
-    out["certified accuracy"] = out["certified accuracy"].map(lambda v: f"{v:.3f}")
     for column in ("poses projected / image", "forward passes / image"):
         out[column] = out[column].map(lambda v: f"{v:,.0f}")
     out["seconds / image"] = out["seconds / image"].map(lambda v: f"{v:.1f}")
-    return out
+    return out if out["machine"].nunique() > 1 else out.drop(columns="machine")
 
 
 def figure(df: pd.DataFrame):
@@ -249,13 +282,13 @@ def figure(df: pd.DataFrame):
     for ax, axis in zip(grid.ravel(), axes, strict=True):
         rows = df[df["axis"] == axis]
         smallest = float(rows["half_width"].min())
-        for _, row in rows[rows["kind"] == "smoothed over motions"].drop_duplicates("base model").iterrows():
+        for _, row in rows[rows["kind"] == MOTION_KIND].drop_duplicates("base model").iterrows():
             radii, acc = certify_log.curve(row["log"])
             radii = np.maximum(radii, smallest / 10)  # log scale: radius 0 drawn at the left edge
             label = f"{row['method']}, {row['base model']}"
             x, y = np.append(radii, radii[-1] * 1.05), np.append(acc, 0.0)
             ax.step(x, y, where="pre", label=label, color=colours[row["base model"]])
-        for (method, model), group in rows[rows["kind"] != "smoothed over motions"].groupby(["method", "base model"]):
+        for (method, model), group in rows[rows["kind"] != MOTION_KIND].groupby(["method", "base model"]):
             frames = group["frames"].dropna().unique()
             label = f"{method}, {model}, whole interval" + (f", {int(frames[0])} frames" if len(frames) == 1 else "")
             if group["frames"].notna().all():  # pixel-wise smoothing

@@ -32,7 +32,7 @@ from mrcert.reporting.experiment_cells import ExperimentCells
 from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.overview import method_figure
 from mrcert.reporting.plots import save
-from mrcert.reporting.results_page import PAPER_ARCH, base_models, jobs_of, write_page
+from mrcert.reporting.results_page import PAPER_ARCH, TRAIN_RUN, base_models, jobs_of, write_page
 from mrcert.reporting.writers import as_text, markdown, write
 from mrcert.tasks.evaluation import run_images
 
@@ -119,6 +119,7 @@ def report(cfg: DictConfig, src: ExperimentCells, built: dict, out: Path) -> Non
         own = next(table for table in paper_tables.TABLES if table.name == t.print)
         print(f"\n{t.print}: not written: it is about {', '.join(own.data)}, not {src.data_of(own.experiment)}")
     models = base_models(src, jobs_of(src, src.experiment_for(paper_tables.REPRODUCTION)))
+    models = models.drop(columns=TRAIN_RUN, errors="ignore")
     if len(models):
         print("\nTheir base classifiers (validation accuracy selected best.pt; test accuracy measured once):\n")
         print(markdown(as_text(models)))
