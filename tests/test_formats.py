@@ -102,6 +102,10 @@ def test_verify_answers_the_competition_instances_as_its_tools_did(tmp_path):
     assert prop.violated(y)
     assert np.allclose(y, [values[f"Y_{j}"] for j in range(20)], atol=1e-4)
     assert (run / "results" / "1.txt").read_text() == "unsat\n"
+    # The comparison beside the competition's tools prints the command as it was typed.
+    comparison = (run / "comparison.md").read_text()
+    typed = f"mrcert task=verify task.instances={BENCH / 'instances.csv'} task.timeout=120"
+    assert f"```bash\n{typed}\n```" in comparison and "_target_" not in comparison
 
 
 def test_verify_refuses_missing_inputs_before_any_run(tmp_path):

@@ -1,4 +1,5 @@
-"""Run-time choices shared by tasks: the device, and a description of the machine and the code.
+"""Run-time choices shared by tasks: the device, a description of the machine and the code, and
+the command that launched the run.
 torch is imported where a run asks for it, so that ``mrcert --help`` and config validation
 stay light."""
 
@@ -97,3 +98,14 @@ def machine() -> str:
         pass
     gpu = f", GPU {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ", no GPU"
     return f"{cpu}, {os.cpu_count()} cores{gpu}"
+
+
+def launch_command() -> str | None:
+    """The command that launched this run, as typed (None outside a launch: the API)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.get()
+    return " ".join(["mrcert", *(["-m"] if hc.mode == RunMode.MULTIRUN else []), *hc.overrides.task])

@@ -24,6 +24,7 @@ from mrcert.data.synthetic import SyntheticData
 from mrcert.errors import MrcertError
 from mrcert.infra.experiment import configure, ensure_experiment
 from mrcert.infra.identity import Identity
+from mrcert.infra.runtime import launch_command
 from mrcert.infra.tasks import Task
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting import paper_tables
@@ -173,17 +174,6 @@ def method_overview(src: ExperimentCells, path: Path) -> Path | None:
             name = bundle.classes[int(sample.label)]
             return method_figure(method, view, name, render(motions), motions, log, float(cfg.motion.radius), path)
     return None
-
-
-def launch_command() -> str | None:
-    """The command that launched this run, as typed (None outside a launch: the API)."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    if not HydraConfig.initialized():
-        return None
-    hc = HydraConfig.get()
-    return " ".join(["mrcert", *(["-m"] if hc.mode == RunMode.MULTIRUN else []), *hc.overrides.task])
 
 
 def named_data() -> str | None:

@@ -28,7 +28,7 @@ from mrcert.formats.onnx_model import read_onnx
 from mrcert.formats.vnnlib import counterexample_text, read_vnnlib
 from mrcert.infra.identity import Identity
 from mrcert.infra.progress import progress
-from mrcert.infra.runtime import machine, resolve_device
+from mrcert.infra.runtime import launch_command, machine, resolve_device
 from mrcert.infra.tasks import HELPER_IGNORES, Task
 from mrcert.infra.tracking import RunContext
 from mrcert.tasks.evaluation import log_headline, result_log
@@ -141,7 +141,9 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             )
     ctx.tracker.log_artifact(results)
     metrics = log_headline(ctx, "verify", log.path, cfg)
-    command = "mrcert task=verify " + " ".join(f"task.{k}={v}" for k, v in t.items() if k != "name" and v is not None)
+    command = launch_command() or "mrcert task=verify " + " ".join(
+        f"task.{k}={v}" for k, v in t.items() if k not in ("name", "_target_") and v is not None
+    )
     text = comparison(pd.read_csv(log.path, sep="\t"), machine(), command)
     if text is not None:
         (ctx.output_dir / "comparison.md").write_text(text)
