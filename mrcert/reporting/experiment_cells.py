@@ -41,6 +41,10 @@ def sweep_combos(experiment: str) -> list[tuple[str, ...]]:
     return list(itertools.product(*axes))
 
 
+SOURCE_COLUMNS = ["table", "row", "column", "value", "runs", "model runs", "links", "note"]
+"""What :meth:`ExperimentCells.record` keeps of each cell, in the sources files' order."""
+
+
 @dataclass
 class ExperimentCells:
     """Where the tables take their cells from, and the record of which runs filled them.
@@ -147,4 +151,4 @@ class ExperimentCells:
     def sources(self, table: str) -> pd.DataFrame:
         """Per cell of ``table``: row, column, value, the runs behind it, their links, why it is empty."""
         rows = [{k: v for k, v in p.items() if k != "table"} for p in self.provenance if p["table"] == table]
-        return pd.DataFrame(rows, columns=["row", "column", "value", "runs", "model runs", "links", "note"])
+        return pd.DataFrame(rows, columns=SOURCE_COLUMNS[1:])

@@ -16,7 +16,7 @@ import pandas as pd
 
 from mrcert.reporting import certify_log, learning_curve, paper_results, paper_tables, side_by_side
 from mrcert.reporting.cells import Cell, compose_config
-from mrcert.reporting.experiment_cells import ExperimentCells, Measure, sweep_combos
+from mrcert.reporting.experiment_cells import SOURCE_COLUMNS, ExperimentCells, Measure, sweep_combos
 from mrcert.reporting.paper_results import PIXELWISE_REPORTED
 from mrcert.reporting.paper_tables import (
     AXIS_NAMES,
@@ -451,7 +451,7 @@ def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
         columns=["axis", "half-width (m)", "method", "model", "pixel sigma", "frames", "certified accuracy"],
     )
     pixelwise = pair[pair["frames"].notna()]
-    for _, r in pair.drop_duplicates(["interval", "run_id"]).iterrows():
+    for _, r in side_by_side.shown_once(pair).iterrows():
         row = (r["axis"], r["interval"], r["method"], r["base model"])
         models = [r["train_run"]] if isinstance(r["train_run"], str) else []
         for column in ("certified accuracy", "seconds / image"):
@@ -678,7 +678,6 @@ def write_page(
     picture = page.with_name(f"{page.stem}_certified_accuracy_vs_radius.png")
     shutil.copyfile(figure, picture)
     page.write_text(render(page_context(src, experiment, table, picture.name, page, command, views)))
-    columns = ["table", "row", "column", "value", "runs", "model runs", "links", "note"]
-    sources = pd.DataFrame(src.provenance, columns=columns)
+    sources = pd.DataFrame(src.provenance, columns=SOURCE_COLUMNS)
     sources.drop(columns="links").to_csv(page.with_name(f"{page.stem}_sources.csv"), index=False, na_rep="")
     return page

@@ -199,7 +199,7 @@ def runs(
     return pd.DataFrame(rows)
 
 
-def _shown_once(df: pd.DataFrame) -> pd.DataFrame:
+def shown_once(df: pd.DataFrame) -> pd.DataFrame:
     """Each run once per interval (a run beside the pixel-wise runs of both pixel sigmas appears
     under each), by axis, method, base model and interval."""
     order = {kind: k for k, kind in enumerate(KINDS)}
@@ -212,7 +212,7 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
     """The page's comparison: one row per axis, method and base model (with the base model's
     accuracy), one column per half-width ``a`` of the interval: the certified accuracy at ``a``
     with its exact 95% interval, empty where that run has not finished."""
-    df = _shown_once(df)
+    df = shown_once(df)
     keys = ["axis", "method", "base model"]
     widths = sorted(df["half_width"].unique())
     rows = []
@@ -241,7 +241,7 @@ def costs(df: pd.DataFrame) -> pd.DataFrame:
     certify an interval, the images it left uncertified by cause. A motion smoothing run certifies
     a radius per image, so it serves every interval (``every a``). The machine column is there
     when the runs ran on more than one machine."""
-    df = _shown_once(df).drop_duplicates("run_id")
+    df = shown_once(df).drop_duplicates("run_id")
     out = df[
         [
             "axis",
