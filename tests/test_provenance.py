@@ -16,8 +16,9 @@ import pytest
 import mrcert
 from mrcert.__main__ import bind, run_task
 from mrcert.infra.identity import file_identity
-from mrcert.infra.runtime import EVIDENCE_STORE, checkout_version
+from mrcert.infra.runtime import EVIDENCE_STORE, as_typed, checkout_version
 from mrcert.reporting.certify_log import read_log
+from mrcert.reporting.results_page import MAKEFILE
 from tests.conftest import ROOT, TINY, compose_cfg, run_cli
 
 RECIPE = [*TINY, "train.epochs=2", "train.batch_size=8"]
@@ -104,6 +105,21 @@ def test_the_code_version_is_dirty_for_a_changed_code_file_but_not_for_the_evide
     code.write_text("two")
     assert checkout_version(tmp_path, "0.1.0") == clean + "+dirty"
     assert checkout_version(tmp_path / "mrcert", "0.1.0") == "0.1.0"  # not a checkout's root
+
+
+def test_the_page_prints_the_makefiles_tables_command_as_its_recipe_writes_it():
+    """The evidence page's "Written by" line is the launch's own overrides. Under ``-m`` Hydra's
+    sweeper hands its one job the overrides written back from their parsed values (a bool as
+    ``True``); ``as_typed`` gives the recipe's text back, and leaves a quoted string quoted."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    recipe = next(line for line in MAKEFILE.read_text().splitlines() if line.startswith("PAGE_TABLES ="))
+    typed = recipe.split("$(MRCERT) -m ", 1)[1].rstrip(" \\").replace("$(PROFILE)", "quick")
+    typed = typed.replace("$(PAGE)", "docs/results.md").split() + ["tracking.experiment='True'"]
+    ((job,),) = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(typed), None)
+    assert "task.show_paper=True" in job  # what the sweeper hands the job
+    assert as_typed(job) == typed
 
 
 def row_sealed(out: Path) -> bool:

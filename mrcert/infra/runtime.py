@@ -6,6 +6,7 @@ stay light."""
 from __future__ import annotations
 
 import functools
+import re
 import subprocess
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -108,4 +109,11 @@ def launch_command() -> str | None:
     if not HydraConfig.initialized():
         return None
     hc = HydraConfig.get()
-    return " ".join(["mrcert", *(["-m"] if hc.mode == RunMode.MULTIRUN else []), *hc.overrides.task])
+    return " ".join(["mrcert", *(["-m"] if hc.mode == RunMode.MULTIRUN else []), *as_typed(hc.overrides.task)])
+
+
+def as_typed(overrides: list[str]) -> list[str]:
+    """A launch's overrides as a user types them: a sweep's jobs get theirs back from Hydra's
+    parser, which writes a bool as ``True``/``False``; typed, ``true``/``false`` (the same value;
+    a quoted string keeps its quotes, so it never matches)."""
+    return [re.sub(r"=(True|False)$", lambda m: "=" + m.group(1).lower(), o) for o in overrides]
