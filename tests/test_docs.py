@@ -101,8 +101,9 @@ def page_table(page: str, heading: str) -> list[list[str]]:
 
 def test_the_readme_quotes_the_evidence_page_exactly():
     """Every figure of the README that comes from the reproduction's runs is the page's: the key
-    table (certified accuracy at r = sigma, ours and the paper's), the base models' test range,
-    the paper's base range and the reproduction's run time."""
+    table (certified accuracy at r = sigma, ours and the paper's) and what the README reads from it,
+    the paper's third finding, the base models' test range, the paper's base range and the
+    reproduction's run time."""
     readme, page = (ROOT / "README.md").read_text(), (ROOT / "docs" / "results.md").read_text()
     prose = " ".join(readme.split())
     certified = {}
@@ -115,6 +116,15 @@ def test_the_readme_quotes_the_evidence_page_exactly():
         axis, vanilla, augmented = (c.strip() for c in line.strip("|").split("|"))
         quoted[(axis, "vanilla")], quoted[(axis, "augmented")] = vanilla, augmented
     assert quoted == certified and len(quoted) == 12
+    ours = {key: float(cell.split(" (")[0]) for key, cell in certified.items()}
+    axes = list(dict.fromkeys(axis for axis, _ in ours))
+    raised = [a for a in axes if ours[(a, "augmented")] > ours[(a, "vanilla")]]
+    named = ", ".join(raised[:-1]) + " and " + raised[-1] if len(raised) > 1 else "".join(raised) or "none"
+    assert f"motion augmentation raises it on {named} ({len(raised)} of 6 axes)" in prose
+    weakest = min(ours, key=ours.get)[0]
+    assert f"{weakest} is where our models are least robust" in prose
+    held = re.search(r"empirical robust accuracy\*\*: holds in (all 12|\d+ of 12)", page).group(1)
+    assert f"at most the smoothed model's empirical robust accuracy in {held} rows" in prose
     tests = [float(r[2]) for r in page_table(page, "The base models")]
     assert f"{min(tests):.2f}-{max(tests):.2f} on the 120 test views" in prose
     paper = re.search(r"the paper's base ResNet-18 models: (\d\.\d+) to (\d\.\d+)", page).groups()
