@@ -692,6 +692,8 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     )
     assert set(src.cited_runs()) == {*df["run_id"], cms_train_id, pws_train_id}
     assert section["machine"] == machine()
+    # The pixel-noise model's caps, as its train run measured them, stated beside the guarantees.
+    assert section["caps"] == {"clean": f"{pws_train['test_acc_clean']:.3f}", "noisy": f"{pws_train['test_acc']:.3f}"}
     # Each certified accuracy with its exact 95% interval (statsmodels' Clopper-Pearson as the oracle).
     from statsmodels.stats.proportion import proportion_confint
 

@@ -458,6 +458,7 @@ def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
             src.record("side_by_side", row, column, r[column], [r["run_id"]], models)
     costs = side_by_side.costs(pair)
     return {
+        "caps": _pixel_noise_caps(pair),
         "experiment": side_by_side.EXPERIMENT,
         "commands": make_stage("side-by-side", src.profile),
         "share": _share(int(pixelwise.iloc[0]["skip"])),
@@ -467,6 +468,20 @@ def side_by_side_section(src: ExperimentCells, page: Path) -> dict | None:
         "picture": plot.name,
         "reported": markdown(as_text(reported)),
     }
+
+
+def _pixel_noise_caps(pair: pd.DataFrame) -> dict | None:
+    """The pixel-noise base models' test accuracy on clean and on noisy images, each as one value
+    or a range over the models (None without such a model)."""
+    noisy = pair[pair["base noisy accuracy"].notna()]
+    if not len(noisy):
+        return None
+
+    def span(column: str) -> str:
+        low, high = noisy[column].min(), noisy[column].max()
+        return f"{low:.3f}" if f"{low:.3f}" == f"{high:.3f}" else f"{low:.3f}-{high:.3f}"
+
+    return {"clean": span("base clean accuracy"), "noisy": span("base noisy accuracy")}
 
 
 PAPER_PROFILE = "paper"
