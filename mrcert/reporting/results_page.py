@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mrcert.core.sequential import TOLERANCE
 from mrcert.reporting import certify_log, learning_curve, paper_results, paper_tables, side_by_side
 from mrcert.reporting.cells import Cell, compose_config
 from mrcert.reporting.experiment_cells import SOURCE_COLUMNS, ExperimentCells, Measure, sweep_combos
@@ -249,6 +250,7 @@ def setup(src: ExperimentCells, jobs: list[Job]) -> dict | None:
         "n": c.task.n,
         "alpha": c.task.alpha,
         "look": c.task.look,
+        "tolerance": TOLERANCE,
         "predict_n": s.task.n,
         "k": a.attack.k,
         "attack": ATTACK_WORDS.get(str(a.attack.name), str(a.attack.name)),
