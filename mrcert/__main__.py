@@ -86,7 +86,7 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
             return result
         cfg, ident = bind(cfg)
         with key_lock(cfg, ident):  # lookup and creation of this key's run: one job at a time
-            decision = decide(cfg, ident, task.reusable)
+            decision = decide(cfg, ident, task.reusable, task.needs)
             if decision.action == "skip":
                 done = decision.run
                 log.info("skipping task %s: run %s already finished with this config", cfg.task.name, done.info.run_id)

@@ -15,8 +15,10 @@ import pytest
 
 import mrcert
 from mrcert.__main__ import bind, run_task
+from mrcert.infra.checkpoints import BEST_PATH
 from mrcert.infra.identity import file_identity
 from mrcert.infra.runtime import EVIDENCE_STORE, as_typed, checkout_version
+from mrcert.infra.store import run_artifacts
 from mrcert.reporting.certify_log import read_log
 from mrcert.reporting.results_page import MAKEFILE
 from tests.conftest import ROOT, TINY, compose_cfg, run_cli
@@ -84,6 +86,21 @@ def test_skip_finished_reuses_only_a_run_of_the_same_model_and_ignores_batch_siz
     assert len(recorded) == 1 and recorded.pop().split()[0] == mrcert.__version__
     if head.returncode == 0:
         assert all(f"git:{head.stdout.strip()}" in r.data.tags["mrcert.code_version"] for r in done)
+
+
+def test_a_train_run_whose_checkpoint_is_gone_is_trained_again_and_not_evaluated(tmp_path):
+    train, certify = [*RECIPE, "task=train", "skip_finished=true"], [*RECIPE, *CERTIFY, "task.max=1"]
+    run_task(compose_cfg(train, tmp_path), tmp_path / "runs" / "first")
+    run_task(compose_cfg(train, tmp_path), tmp_path / "runs" / "again")  # reused while best.pt is there
+    (first,) = runs(tmp_path, "tags.`mrcert.task` = 'train'")
+    # The store copied without that checkpoint (an evidence store that leaves a large one out).
+    (run_artifacts(tmp_path, first.info.run_id) / BEST_PATH).unlink()
+    run_task(compose_cfg(train, tmp_path), tmp_path / "runs" / "retrained")
+    retrained = [r for r in runs(tmp_path, "tags.`mrcert.task` = 'train'") if r.info.run_id != first.info.run_id]
+    assert len(retrained) == 1 and retrained[0].info.status == "FINISHED"
+    run_task(compose_cfg(certify, tmp_path), tmp_path / "runs" / "certify")
+    (evaluated,) = runs(tmp_path, "tags.`mrcert.task` = 'certify'")
+    assert evaluated.data.tags["mrcert.train_run"] == retrained[0].info.run_id
 
 
 def test_the_code_version_is_dirty_for_a_changed_code_file_but_not_for_the_evidence_store(tmp_path):

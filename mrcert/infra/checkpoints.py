@@ -27,6 +27,8 @@ from mrcert.infra.store import moved_artifact
 
 BEST, LAST = "best.pt", "last.pt"
 ARTIFACT_DIR = "checkpoints"
+BEST_PATH = f"{ARTIFACT_DIR}/{BEST}"
+"""Where a train run logs the model an evaluation loads."""
 
 
 def _save(state: dict[str, Any], path: Path) -> None:

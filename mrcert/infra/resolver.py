@@ -33,14 +33,13 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from mrcert.errors import MrcertError
-from mrcert.infra.checkpoints import ARTIFACT_DIR, BEST
+from mrcert.infra.checkpoints import BEST_PATH
 from mrcert.infra.config import plain, trained_for
 from mrcert.infra.identity import RunIdentity, file_identity, identify
 from mrcert.infra.tasks import TASKS
 
 DIGEST_TAG = "mrcert.checkpoint_sha256"
 """Tag of a train run: the content identity (``sha256:<hex>``) of its ``best.pt``."""
-BEST_PATH = f"{ARTIFACT_DIR}/{BEST}"
 
 
 @dataclass(frozen=True)

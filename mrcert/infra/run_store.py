@@ -17,15 +17,20 @@ effect of a look-up.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Any
 
 import pandas as pd
 from omegaconf import DictConfig
 
+from mrcert.infra.checkpoints import BEST_PATH
 from mrcert.infra.experiment import configure
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.resumption import resumable
+from mrcert.infra.store import moved_artifact
+
+log = logging.getLogger("mrcert")
 
 KEY_TAG, CELL_TAG = "mrcert.key", "mrcert.cell"
 FINISHED = "attributes.status = 'FINISHED'"
@@ -75,14 +80,35 @@ class Decision:
     interrupted: list = field(default_factory=list)
 
 
-def decide(cfg: DictConfig, ident: RunIdentity, reusable: bool) -> Decision:
+def holding(tracking: DictConfig, runs: list, path: str | None) -> list:
+    """Those of ``runs`` that hold the artifact ``path`` (all of them when ``path`` is None): in
+    the location each recorded or, for a store folder moved since, in its own ``mlartifacts``."""
+    if path is None:
+        return runs
+    client = configure(tracking).MlflowClient()
+    folder = path.rpartition("/")[0] or None
+    kept = []
+    for run in runs:
+        try:
+            listed = {f.path for f in client.list_artifacts(run.info.run_id, folder)}
+        except Exception:  # noqa: BLE001 - a recorded location that is gone
+            listed = set()
+        if path in listed or moved_artifact(run.info.run_id, path) is not None:
+            kept.append(run)
+        else:
+            log.info("run %s finished but its %s is gone: it serves no job", run.info.run_id, path)
+    return kept
+
+
+def decide(cfg: DictConfig, ident: RunIdentity, reusable: bool, needs: str | None = None) -> Decision:
     """Skip when ``skip_finished`` is on, the task's results can be reused (``reusable``) and a
-    FINISHED run has this run key; else resume the newest interrupted run (``task.resume``; one
-    a live process holds is refused); else new. Untracked jobs are always new."""
+    FINISHED run has this run key (and still holds the artifact ``needs``, when given); else
+    resume the newest interrupted run (``task.resume``; one a live process holds is refused);
+    else new. Untracked jobs are always new."""
     if not cfg.tracking.enabled:
         return Decision("new")
     if reusable and cfg.get("skip_finished"):
-        runs = finished(cfg.tracking, ident.key)
+        runs = holding(cfg.tracking, finished(cfg.tracking, ident.key), needs)
         if runs:
             return Decision("skip", runs[0])
     waiting = interrupted(cfg.tracking, ident.key)
@@ -91,8 +117,9 @@ def decide(cfg: DictConfig, ident: RunIdentity, reusable: bool) -> Decision:
 
 
 def newest_train_run(tracking: DictConfig, key: str) -> str | None:
-    """The id of the newest FINISHED train run with run key ``key``, or None."""
-    runs = finished(tracking, key, task="train")
+    """The id of the newest FINISHED train run with run key ``key`` that still holds its
+    checkpoint, or None (the model an evaluation loads)."""
+    runs = holding(tracking, finished(tracking, key, task="train"), BEST_PATH)
     return runs[0].info.run_id if runs else None
 
 

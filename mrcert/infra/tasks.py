@@ -33,6 +33,9 @@ class Task:
     """Which config keys define the task's result (see :mod:`mrcert.infra.identity`)."""
     reusable: ClassVar[bool] = True
     """Whether a FINISHED run of the same run key may stand in for a new one (``skip_finished``)."""
+    needs: ClassVar[str | None] = None
+    """The artifact without which a FINISHED run no longer stands in for a new one (a train
+    run's checkpoint: a store copied without it trains the model again)."""
     tracked: ClassVar[bool] = True
     """Whether it runs inside an MLflow run of its own (``task=ui`` serves the store and adds no run to it)."""
     log: ClassVar[str | None] = None

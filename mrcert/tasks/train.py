@@ -248,6 +248,7 @@ class Train(Task):
         method="model",
     )
     headline = ("test_acc",)
+    needs = checkpoints.BEST_PATH
 
     def title(self, cfg: DictConfig) -> str:
         return model_title(cfg)
