@@ -1,7 +1,8 @@
 """Which run: the one module that asks an MLflow store which of its runs serves a job.
 
 * :func:`decide` -- what a job does about its run key, decided once: skip it (a FINISHED run
-  serves it, with ``skip_finished``), resume an interrupted run of it, or start a new one;
+  serves it, with ``skip_finished``, while it holds the artifact its task ``needs``:
+  :func:`holding`), resume an interrupted run of it, or start a new one;
 * :func:`finished` -- the FINISHED runs of a run key, newest first (a job's result, which
   ``skip_finished`` reuses; a model's train run: :func:`newest_train_run`, or
   :func:`newest_train_run_in` the tables' index);
