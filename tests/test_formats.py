@@ -71,9 +71,15 @@ def test_a_property_survives_the_round_trip_bit_for_bit(tmp_path):
     ("text", "message"),
     [
         ("(declare-const X_0 Real)\n(declare-const Y_0 Real)\n(assert (<= Y_0 0))", "every input needs"),
-        ("(declare-const X_0 Real)\n(assert (<= X_0 1))\n(assert (>= X_0 0))", "no output constraint"),
+        (
+            "(declare-const X_0 Real)\n(declare-const Y_0 Real)\n(assert (<= X_0 1))\n(assert (>= X_0 0))",
+            "no output constraint",
+        ),
         ("(declare-const X_0 Real)\n(assert (<= X_0 1)", "unbalanced"),
-        ("(declare-const X_0 Real)(declare-const Y_0 Real)(assert (or (and (<= X_0 1) (>= Y_0 0))))", "both inputs"),
+        (
+            "(declare-const X_0 Real)(declare-const Y_0 Real)(assert (or (and (<= X_0 1) (>= X_0 Y_0))))",
+            "inputs with outputs",
+        ),
     ],
 )
 def test_a_property_it_cannot_read_is_refused_in_one_line(tmp_path, text, message):

@@ -4,7 +4,7 @@ per pixel and channel) to sound bounds on its logits and on their differences.
 :class:`BoundNetwork` reads the classifier's graph with ``torch.fx`` (our small CNN, ResNet-18
 and ResNet-50 as torchvision builds them, the networks :mod:`mrcert.formats.onnx_model` reads)
 into layers of four kinds: affine maps of one input (convolution, linear, batch norm in
-evaluation mode, average pooling, flattening, reshaping, adding or scaling by a constant), the
+evaluation mode, average pooling, zero padding, flattening, reshaping, adding or scaling by a constant), the
 sum of two inputs (residual additions), ReLU and max pooling. It bounds them in float64:
 
 * **interval bounds** (IBP) pass ``[lo, up]`` layer by layer: an affine map sends the centre
@@ -158,7 +158,11 @@ class BoundNetwork:
         if (node.op == "call_function" and target in RELU_FUNCTIONS) or (node.op == "call_method" and target == "relu"):
             return Layer("relu", inputs, name=name)
         if node.op == "call_function" and target is F.max_pool2d:
-            args = list(node.args[1:]) + [None] * 3
+            args = list(node.args[1:]) + [None] * 6
+            dilation = node.kwargs.get("dilation", args[3] if args[3] is not None else 1)
+            ceil, indices = (node.kwargs.get(k, v) for k, v in (("ceil_mode", args[4]), ("return_indices", args[5])))
+            if _pair(dilation, "dilation") != 1 or ceil or indices:
+                raise _unsupported(node, "max pooling with dilation, ceil_mode or indices")
             kernel = node.kwargs.get("kernel_size", args[0])
             stride = node.kwargs.get("stride", args[1]) or kernel
             padding = node.kwargs.get("padding", args[2] or 0)
@@ -188,6 +192,12 @@ class BoundNetwork:
         if node.op == "call_function" and target in DIVISIONS and node.args[0] is x:
             divisor = node.args[1] if not isinstance(node.args[1], fx.Node) else consts[node.args[1]]
             return Layer("affine", inputs, fn, lambda r, d=divisor: r / abs(d), name=name)
+        if node.op == "call_function" and target is F.pad:
+            rest = list(node.args[2:]) + [None, None]
+            mode, value = node.kwargs.get("mode", rest[0] or "constant"), node.kwargs.get("value", rest[1])
+            if mode != "constant" or value not in (None, 0, 0.0):
+                raise _unsupported(node, f"padding by mode {mode!r} with value {value!r} (zeros only)")
+            return Layer("affine", inputs, fn, fn, name=name)
         if (node.op == "call_function" and target in POSITIVE) or (
             node.op == "call_method" and target in POSITIVE_METHODS
         ):

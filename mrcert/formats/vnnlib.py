@@ -1,16 +1,32 @@
-"""VNN-LIB properties: an input box and an unsafe output region, read and written.
+"""VNN-LIB properties: input boxes and unsafe output regions, read and written.
 
-A property declares inputs ``X_i`` and outputs ``Y_j``, bounds every input
-(``(assert (<= X_i u))``, ``(assert (>= X_i l))``) and states the unsafe region as a disjunction
-of conjunctions of linear comparisons between outputs or an output and a constant
-(``(assert (or (and (>= Y_1 Y_0)) ...))``, or a single comparison or conjunction). The property
-holds (``unsat``) when no input of the box gives outputs in the unsafe region. One box of inputs
-is supported (a disjunction over inputs is refused in one line).
+A property declares inputs ``X_i`` and outputs ``Y_j`` (``(declare-const X_0 Real)``, each
+index from 0 up without a gap) and asserts formulas over them. As the standard says, the
+top-level assertions hold together (a conjunction): the property is ``sat`` when some input
+satisfies every one of them with the network's outputs. A formula is a comparison
+(``(<= A B)``, ``(>= A B)``, ``A`` and ``B`` linear terms: numbers, variables, ``(+ ...)``,
+``(- ...)``, ``(* c t)``) or an ``(and ...)`` / ``(or ...)`` of formulas; a comparison is over
+inputs alone (then a bound of one input) or over outputs alone. :func:`read_cases` turns the
+assertions into their disjunctive normal form grouped by input box: a list of :class:`Property`
+(one box each, with the disjunction of conjunctions over outputs that is unsafe there); the
+property is ``unsat`` when every box is. The usual file (bounds on every input, one ``(or (and
+...))`` over outputs) is one box.
+
+The file is read as a stream of top-level forms (gzipped or not); a file beyond ``max_bytes``
+(:data:`MAX_PROPERTY_BYTES`) is refused before it is parsed, and every malformed file in one
+line naming the file, the line and what was expected: an undeclared or out-of-range variable,
+a number that is not finite (NaN, infinities), a form that is not one of the above, a
+disjunctive normal form beyond :data:`MAX_DISJUNCTS` disjuncts.
 """
 
 from __future__ import annotations
 
+import gzip
+import io
+import itertools
+import math
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +35,11 @@ import numpy as np
 from mrcert.errors import MrcertError
 
 TOKEN = re.compile(r"\(|\)|[^\s()]+")
+NAME = re.compile(r"([XY])_(\d+)")
+MAX_PROPERTY_BYTES = 64 * 2**20
+"""The largest property file (unzipped) read by default."""
+MAX_DISJUNCTS = 10_000
+"""The most disjuncts a property's assertions may expand to (their disjunctive normal form)."""
 
 
 @dataclass
@@ -35,113 +56,285 @@ class Property:
         """Whether the outputs ``y`` lie in the unsafe region."""
         return any(all(float(c @ y) + d >= 0 for c, d in conj) for conj in self.unsafe)
 
-
-def _parse(text: str) -> list:
-    text = re.sub(r";[^\n]*", "", text)
-    stack: list[list] = [[]]
-    for tok in TOKEN.findall(text):
-        if tok == "(":
-            stack.append([])
-        elif tok == ")":
-            if len(stack) == 1:
-                raise MrcertError("VNN-LIB: unbalanced parentheses")
-            done = stack.pop()
-            stack[-1].append(done)
-        else:
-            stack[-1].append(tok)
-    if len(stack) != 1:
-        raise MrcertError("VNN-LIB: unbalanced parentheses")
-    return stack[0]
+    def contains(self, x: np.ndarray) -> bool:
+        x = np.asarray(x, np.float64).ravel()
+        return bool(((x >= self.low) & (x <= self.high)).all())
 
 
-def read_vnnlib(path: Path | str) -> Property:
-    """The property of a VNN-LIB file (module docstring)."""
-    path = Path(path)
-    try:
-        forms = _parse(path.read_text())
-    except OSError as exc:
-        raise MrcertError(f"cannot read VNN-LIB property {str(path)!r}: {exc.strerror}") from None
-    names = {"X": [], "Y": []}
-    for form in forms:
-        if form and form[0] == "declare-const":
-            kind, _, index = form[1].partition("_")
-            if kind not in names or not index.isdigit():
-                raise MrcertError(f"{path}: variable {form[1]} is neither X_i nor Y_j")
-            names[kind].append(int(index))
-    n_in, n_out = len(names["X"]), len(names["Y"])
-    low, high = np.full(n_in, -np.inf), np.full(n_in, np.inf)
-    unsafe: list[list[tuple[np.ndarray, float]]] = []
+class Form(list):
+    """A parenthesised form, with the line it starts on."""
 
-    def term(tok) -> tuple[str, int | float]:
-        if isinstance(tok, str) and re.fullmatch(r"[XY]_\d+", tok):
-            return tok[0], int(tok[2:])
+    line: int = 0
+
+
+class _Reader:
+    """One file's forms, read as a stream (module docstring)."""
+
+    def __init__(self, path: Path, max_bytes: int):
+        self.path, self.max_bytes = path, int(max_bytes)
+        self.line = 0
+
+    def fail(self, line: int, what: str) -> MrcertError:
+        return MrcertError(f"{self.path}:{line}: {what}")
+
+    def _lines(self) -> Iterator[str]:
         try:
-            return "c", float(tok)
-        except (TypeError, ValueError):
-            raise MrcertError(f"{path}: {tok!r} is not a variable or a number") from None
+            with self.path.open("rb") as probe:
+                zipped = probe.read(2) == b"\x1f\x8b"
+            if not zipped and self.path.stat().st_size > self.max_bytes:
+                raise MrcertError(
+                    f"{self.path}: {self.path.stat().st_size} bytes, beyond the {self.max_bytes} a property "
+                    "may have here (task.max_property_mb)"
+                )
+            raw = gzip.open(self.path, "rb") if zipped else self.path.open("rb")
+        except OSError as exc:
+            raise MrcertError(f"cannot read VNN-LIB property {str(self.path)!r}: {exc.strerror}") from None
+        read = 0
+        with raw, io.TextIOWrapper(raw, encoding="utf-8", errors="strict") as text:
+            try:
+                for line in text:
+                    read += len(line)
+                    if read > self.max_bytes:
+                        raise MrcertError(f"{self.path}: more than {self.max_bytes} bytes once unzipped, beyond "
+                                          "what a property may have here (task.max_property_mb)")  # fmt: skip
+                    yield line
+            except (UnicodeDecodeError, OSError, EOFError) as exc:
+                raise MrcertError(f"{self.path}: not a readable text file ({exc})") from None
 
-    def comparison(form) -> tuple[np.ndarray, float]:
-        """``c . Y + d >= 0`` for ``(>= A B)`` or ``(<= A B)``."""
-        if len(form) != 3 or form[0] not in (">=", "<="):
-            raise MrcertError(f"{path}: expected (>= A B) or (<= A B), got {form}")
-        c, d = np.zeros(n_out), 0.0
-        sign = 1.0 if form[0] == ">=" else -1.0
-        for side, s in ((form[1], sign), (form[2], -sign)):
-            kind, value = term(side)
-            if kind == "X":
-                raise MrcertError(f"{path}: a constraint mixing inputs and outputs is not supported")
-            if kind == "Y":
-                c[value] += s
-            else:
-                d += s * value
-        return c, d
+    def forms(self) -> Iterator[Form]:
+        """The top-level forms, one at a time."""
+        stack: list[Form] = []
+        for number, line in enumerate(self._lines(), start=1):
+            self.line = number
+            for tok in TOKEN.findall(line.split(";", 1)[0]):
+                if tok == "(":
+                    form = Form()
+                    form.line = number
+                    stack.append(form)
+                elif tok == ")":
+                    if not stack:
+                        raise self.fail(number, "unbalanced parentheses: a ')' closes nothing")
+                    done = stack.pop()
+                    if stack:
+                        stack[-1].append(done)
+                    else:
+                        yield done
+                elif not stack:
+                    raise self.fail(number, f"expected '(' to open a command, got {tok!r}")
+                else:
+                    stack[-1].append(tok)
+        if stack:
+            raise self.fail(stack[-1].line, "unbalanced parentheses: this '(' is never closed")
 
-    def conjunction(form) -> list[tuple[np.ndarray, float]]:
-        if form[0] == "and":
-            return [comparison(f) for f in form[1:]]
-        return [comparison(form)]
 
-    for form in forms:
-        if not form or form[0] != "assert":
-            continue
-        body = form[1]
-        variables = {t[0] for t in _flatten(body) if isinstance(t, str) and re.fullmatch(r"[XY]_\d+", t)}
-        if variables == {"X"}:
-            if body[0] not in (">=", "<=") or len(body) != 3:
-                raise MrcertError(f"{path}: input constraints must be bounds (<= X_i c), (>= X_i c); got {body[0]}")
-            (ka, va), (kb, vb) = term(body[1]), term(body[2])
-            if {ka, kb} != {"X", "c"}:
-                raise MrcertError(f"{path}: input constraints must compare one input with a number")
-            index, value = (va, vb) if ka == "X" else (vb, va)
-            upper = (body[0] == "<=") == (ka == "X")
-            if upper:
-                high[index] = min(high[index], value)
-            else:
-                low[index] = max(low[index], value)
-        elif variables == {"Y"}:
-            if body[0] == "or":
-                unsafe += [conjunction(f) for f in body[1:]]
-            else:
-                unsafe.append(conjunction(body))
+@dataclass
+class _Disjunct:
+    """One conjunction of the disjunctive normal form: input bounds and output comparisons."""
+
+    bounds: tuple  # ((index, is_upper, value), ...)
+    outputs: tuple  # (({j: coefficient}, constant), ...): sum + constant >= 0
+
+
+def _tighten(low: dict, high: dict, bounds) -> None:
+    """Input bounds ``(index, is_upper, value)`` met with those ``low`` and ``high`` hold."""
+    for index, upper, value in bounds:
+        if upper:
+            high[index] = min(high.get(index, value), value)
         else:
-            raise MrcertError(
-                f"{path}: an assertion over both inputs and outputs (several input boxes) is not supported"
-            )
-    if not np.isfinite(low).all() or not np.isfinite(high).all():
-        raise MrcertError(f"{path}: every input needs a lower and an upper bound")
-    if (low > high).any():
-        raise MrcertError(f"{path}: an input's lower bound exceeds its upper bound (X_{int(np.argmax(low > high))})")
-    if not unsafe:
-        raise MrcertError(f"{path}: no output constraint (the unsafe region)")
-    return Property(low, high, unsafe, n_out)
+            low[index] = max(low.get(index, value), value)
 
 
-def _flatten(form):
-    if isinstance(form, list):
-        for f in form:
-            yield from _flatten(f)
-    else:
-        yield form
+def read_cases(
+    path: Path | str, inputs: int | None = None, outputs: int | None = None, max_bytes: int = MAX_PROPERTY_BYTES
+) -> list[Property]:
+    """The property of a VNN-LIB file as its input boxes, each with the unsafe region there
+    (module docstring); ``inputs`` and ``outputs``, when given, are the network's sizes, which
+    the declarations must match."""
+    path = Path(path)
+    reader = _Reader(path, max_bytes)
+    declared: dict[str, set[int]] = {"X": set(), "Y": set()}
+    low: dict[int, float] = {}
+    high: dict[int, float] = {}
+    common: list[tuple[dict, float]] = []  # output comparisons asserted on their own
+    compound: list[list[_Disjunct]] = []  # the other assertions, each as its normal form
+    size = 1
+
+    def number(tok: str, line: int) -> float:
+        try:
+            value = float(tok)
+        except ValueError:
+            raise reader.fail(line, f"expected a number or a declared variable, got {tok!r}") from None
+        if not math.isfinite(value):
+            raise reader.fail(line, f"the number {tok!r} is not finite")
+        return value
+
+    def variable(tok: str, line: int) -> tuple[str, int] | None:
+        m = NAME.fullmatch(tok)
+        if m is None:
+            return None
+        kind, index = m.group(1), int(m.group(2))
+        if index not in declared[kind]:
+            raise reader.fail(line, f"{tok} is used but not declared (declare-const {tok} Real)")
+        return kind, index
+
+    def term(form, line: int) -> tuple[dict[tuple[str, int], float], float]:
+        """A linear term: coefficients by variable, and a constant."""
+        if isinstance(form, str):
+            var = variable(form, line)
+            return ({var: 1.0}, 0.0) if var else ({}, number(form, line))
+        line = form.line
+        if not form or not isinstance(form[0], str) or form[0] not in ("+", "-", "*") or len(form) < 2:
+            raise reader.fail(line, f"expected a number, a variable or (+ ...), (- ...), (* c t), got {_show(form)}")
+        parts = [term(f, line) for f in form[1:]]
+        if form[0] == "*":
+            if len(parts) != 2 or (parts[0][0] and parts[1][0]):
+                raise reader.fail(line, f"expected (* c t) with c a number, got {_show(form)}")
+            (ca, ka), (cb, kb) = parts
+            coeffs, factor, const = (cb, ka, kb) if not ca else (ca, kb, ka)
+            return {v: c * factor for v, c in coeffs.items()}, const * factor
+        signs = [1.0] + [(-1.0 if form[0] == "-" else 1.0)] * (len(parts) - 1)
+        if form[0] == "-" and len(parts) == 1:
+            signs = [-1.0]
+        coeffs: dict = {}
+        const = 0.0
+        for s, (c, k) in zip(signs, parts, strict=True):
+            for v, a in c.items():
+                coeffs[v] = coeffs.get(v, 0.0) + s * a
+            const += s * k
+        return coeffs, const
+
+    def comparison(form: Form) -> _Disjunct:
+        """``(<= A B)`` / ``(>= A B)`` as an input bound or an output comparison."""
+        if len(form) != 3:
+            raise reader.fail(form.line, f"expected ({form[0]} A B), got {_show(form)}")
+        (ca, ka), (cb, kb) = term(form[1], form.line), term(form[2], form.line)
+        sign = 1.0 if form[0] == ">=" else -1.0  # sign * (A - B) >= 0
+        coeffs = {v: sign * (ca.get(v, 0.0) - cb.get(v, 0.0)) for v in set(ca) | set(cb)}
+        coeffs = {v: c for v, c in coeffs.items() if c != 0.0}
+        const = sign * (ka - kb)
+        kinds = {v[0] for v in coeffs}
+        if kinds == {"X", "Y"}:
+            raise reader.fail(form.line, f"a comparison of inputs with outputs is not supported: {_show(form)}")
+        if not kinds:
+            raise reader.fail(form.line, f"a comparison of numbers alone: {_show(form)}")
+        if kinds == {"X"}:
+            if len(coeffs) != 1:
+                raise reader.fail(form.line, f"an input comparison must bound one input: {_show(form)}")
+            [((_, index), a)] = coeffs.items()
+            return _Disjunct(((index, a < 0, -const / a),), ())  # a X + const >= 0
+        return _Disjunct((), (({j: c for (_, j), c in coeffs.items()}, const),))
+
+    def normal_form(form) -> list[_Disjunct]:
+        if isinstance(form, str) or not form or not isinstance(form[0], str):
+            line = form.line if isinstance(form, Form) else reader.line
+            raise reader.fail(line, f"expected a formula (<= A B), (>= A B), (and ...) or (or ...), got {_show(form)}")
+        head = form[0]
+        if head in ("<=", ">="):
+            return [comparison(form)]
+        if head not in ("and", "or"):
+            raise reader.fail(form.line, f"expected <=, >=, and or or, got {head!r}")
+        if len(form) < 2:
+            raise reader.fail(form.line, f"({head}) needs at least one formula")
+        parts = [normal_form(f) for f in form[1:]]
+        if head == "or":
+            out = [d for p in parts for d in p]
+        else:
+            out = conjoin(parts, form.line)
+        if len(out) > MAX_DISJUNCTS:
+            raise reader.fail(form.line, f"the formula expands to more than {MAX_DISJUNCTS} disjuncts")
+        return out
+
+    def conjoin(parts: list[list[_Disjunct]], line: int) -> list[_Disjunct]:
+        total = math.prod(len(p) for p in parts)
+        if total > MAX_DISJUNCTS:
+            raise reader.fail(line, f"the assertions expand to {total} disjuncts, more than {MAX_DISJUNCTS}")
+        return [
+            _Disjunct(tuple(b for d in combo for b in d.bounds), tuple(o for d in combo for o in d.outputs))
+            for combo in itertools.product(*parts)
+        ]
+
+    for form in reader.forms():
+        if not form or not isinstance(form[0], str):
+            raise reader.fail(form.line, f"expected (declare-const ...) or (assert ...), got {_show(form)}")
+        if form[0] == "declare-const":
+            m = NAME.fullmatch(form[1]) if len(form) == 3 and isinstance(form[1], str) else None
+            if m is None or form[2] != "Real":
+                raise reader.fail(form.line, f"expected (declare-const X_i Real) or (declare-const Y_j Real), "
+                                             f"got {_show(form)}")  # fmt: skip
+            kind, index = m.group(1), int(m.group(2))
+            if index in declared[kind]:
+                raise reader.fail(form.line, f"{form[1]} is declared twice")
+            declared[kind].add(index)
+            continue
+        if form[0] != "assert":
+            raise reader.fail(form.line, f"expected (declare-const ...) or (assert ...), got ({form[0]} ...)")
+        if len(form) != 2:
+            raise reader.fail(form.line, f"expected (assert FORMULA) with one formula, got {len(form) - 1}")
+        dnf = normal_form(form[1])
+        if len(dnf) == 1:  # a conjunction: its bounds and comparisons hold throughout
+            _tighten(low, high, dnf[0].bounds)
+            common.extend(dnf[0].outputs)
+            continue
+        size *= len(dnf)
+        if size > MAX_DISJUNCTS:
+            raise reader.fail(form.line, f"the assertions expand to more than {MAX_DISJUNCTS} disjuncts")
+        compound.append(dnf)
+
+    for kind, what in (("X", "inputs"), ("Y", "outputs")):
+        indices = declared[kind]
+        if indices != set(range(len(indices))):
+            gap = min(set(range(len(indices))) - indices)
+            raise MrcertError(f"{path}: {kind}_{max(indices)} is declared but {kind}_{gap} is not (the {what} "
+                              f"are numbered from 0 without a gap)")  # fmt: skip
+    n_in, n_out = len(declared["X"]), len(declared["Y"])
+    for have, want, what in ((n_in, inputs, "inputs"), (n_out, outputs, "outputs")):
+        if want is not None and have != want:
+            raise MrcertError(f"{path}: declares {have} {what} where the network has {want}")
+    if not n_in or not n_out:
+        raise MrcertError(f"{path}: declares {n_in} inputs and {n_out} outputs; a property needs both")
+    dnf = conjoin(compound, reader.line) if compound else [_Disjunct((), ())]
+    boxes: dict[tuple, Property] = {}
+    for d in dnf:
+        lo, hi = dict(low), dict(high)
+        _tighten(lo, hi, d.bounds)
+        missing = [i for i in range(n_in) if i not in lo or i not in hi]
+        if missing:
+            raise MrcertError(f"{path}: every input needs a lower and an upper bound (X_{missing[0]} has "
+                              f"{'no lower' if missing[0] not in lo else 'no upper'})")  # fmt: skip
+        l_arr = np.array([lo[i] for i in range(n_in)], np.float64)
+        h_arr = np.array([hi[i] for i in range(n_in)], np.float64)
+        if (l_arr > h_arr).any():
+            first = int(np.argmax(l_arr > h_arr))
+            raise MrcertError(f"{path}: an input's lower bound exceeds its upper bound (X_{first})")
+        rows = [*common, *d.outputs]
+        if not rows:
+            raise MrcertError(f"{path}: no output constraint (the unsafe region)")
+        conj = []
+        for coeffs, const in rows:
+            c = np.zeros(n_out)
+            for j, a in coeffs.items():
+                c[j] += a
+            conj.append((c, float(const)))
+        key = (l_arr.tobytes(), h_arr.tobytes())
+        if key not in boxes:
+            boxes[key] = Property(l_arr, h_arr, [], n_out)
+        boxes[key].unsafe.append(conj)
+    return list(boxes.values())
+
+
+def read_vnnlib(
+    path: Path | str, inputs: int | None = None, outputs: int | None = None, max_bytes: int = MAX_PROPERTY_BYTES
+) -> Property:
+    """The property of a VNN-LIB file with one input box (:func:`read_cases`; several are refused)."""
+    cases = read_cases(path, inputs, outputs, max_bytes)
+    if len(cases) != 1:
+        raise MrcertError(f"{path}: a disjunction of {len(cases)} input boxes, where one is read here")
+    return cases[0]
+
+
+def _show(form, limit: int = 60) -> str:
+    text = form if isinstance(form, str) else "(" + " ".join(_show(f, limit) for f in form) + ")"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def write_vnnlib(

@@ -217,6 +217,8 @@ class Verify:
     timeout: float | None = None
     relaxation: str = MISSING
     max_boxes: int = MISSING
+    max_model_mb: float = checked(POSITIVE)
+    max_property_mb: float = checked(POSITIVE)
     result: str | None = None
     page: str | None = None
 

@@ -55,7 +55,7 @@ def _store(path: Path, cfg: DictConfig) -> None:
 def _onnx(path: Path, cfg: DictConfig) -> None:
     from mrcert.formats.onnx_model import read_onnx
 
-    read_onnx(path)
+    read_onnx(path, int(float(cfg.task.max_model_mb) * 2**20))
 
 
 CHECKS: dict[str, Callable[[Path, DictConfig], None]] = {

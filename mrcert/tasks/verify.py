@@ -1,6 +1,15 @@
 """``task=verify``: VNN-LIB properties of ONNX classifiers answered as the competition's tools
 answer them (``unsat``, ``sat`` with a counterexample, ``unknown``, ``timeout``), by bound
-propagation with input splitting (:func:`mrcert.core.methods.bound_propagation.verify_box`).
+propagation with input splitting (:func:`mrcert.core.methods.bound_propagation.verify_box`), over
+each input box of the property (:func:`mrcert.formats.vnnlib.read_cases`).
+
+Before an instance is answered, the network mrcert read is run beside the file itself, by an
+independent executor (onnxruntime), at the corners, the centre and seeded random points of each
+box; a difference beyond float tolerance, a file mrcert refuses (an attribute it does not read,
+sizes that do not match the property, a malformed property, one beyond ``task.max_model_mb`` or
+``task.max_property_mb``) is ``error`` with its reason in the instance's row, and the other
+instances are answered. A counterexample is reported with the executor's outputs, and only when
+they lie in the unsafe region.
 
 One instance (``task.onnx`` + ``task.vnnlib``) or a benchmark's ``instances.csv`` (rows
 ``onnx,vnnlib,timeout`` relative to its folder, gzipped files read as they are). Each answer is
@@ -10,22 +19,22 @@ a restarted run resumes after the instances it has answered."""
 from __future__ import annotations
 
 import csv
-import gzip
-import shutil
-import tempfile
+import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.methods.bound_propagation import verify_box
+from mrcert.core.methods.bound_propagation import BoxVerdict, verify_box
 from mrcert.core.propagation import BoundNetwork
 from mrcert.errors import MrcertError
-from mrcert.formats.onnx_model import read_onnx
-from mrcert.formats.vnnlib import counterexample_text, read_vnnlib
+from mrcert.formats.onnx_model import MAX_MODEL_BYTES, ReferenceCheck, read_onnx
+from mrcert.formats.vnnlib import MAX_PROPERTY_BYTES, Property, counterexample_text, read_cases
 from mrcert.infra.identity import Identity
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import launch_command, machine, resolve_device
@@ -64,16 +73,6 @@ def instances(t: DictConfig) -> list[tuple[Path, Path, float]]:
     return [(Path(str(t.onnx)), Path(str(t.vnnlib)), float(t.timeout or DEFAULT_TIMEOUT))]
 
 
-def _plain(path: Path, folder: Path) -> Path:
-    """``path``, or its gunzipped copy in ``folder`` (a benchmark ships .onnx.gz, .vnnlib.gz)."""
-    if path.suffix != ".gz":
-        return path
-    out = folder / path.with_suffix("").name
-    with gzip.open(path, "rb") as src, open(out, "wb") as dst:
-        shutil.copyfileobj(src, dst)
-    return out
-
-
 def _existing(path: Path) -> Path:
     """``path``, or ``path.gz`` where only that exists (a listing may name a file shipped gzipped)."""
     if path.is_file():
@@ -84,6 +83,122 @@ def _existing(path: Path) -> Path:
     raise MrcertError(f"instance file {str(path)!r} does not exist")
 
 
+CHECK_POINTS = 3
+"""Seeded random points of each box (beside its corners and centre) at which the network read is
+run by the reference executor before the instance is answered."""
+
+
+@dataclass
+class Network:
+    """A network of a benchmark, read once: the module, its bounds, its reference check, its sizes."""
+
+    model: torch.nn.Module
+    bounds: BoundNetwork
+    reference: ReferenceCheck
+    inputs: int
+    outputs: int
+
+    @classmethod
+    def read(cls, path: Path, device: torch.device, max_bytes: int) -> Network:
+        model = read_onnx(path, max_bytes)
+        shape = (1, *model.input_shape[1:])
+        with torch.no_grad():
+            outputs = int(model(torch.zeros(shape)).shape[1])
+        reference = ReferenceCheck(model, str(path))
+        model = model.to(device)
+        return cls(model, BoundNetwork(model), reference, int(np.prod(shape)), outputs)
+
+    def check(self, cases: list[Property], seed: int) -> None:
+        """Refuse (one line) a reading of the file whose outputs are not the reference executor's
+        at the corners, the centre and seeded random points of each box."""
+        g = np.random.default_rng(seed)
+        shape = (-1, *self.model.input_shape[1:])
+        for case in cases:
+            width = case.high - case.low
+            points = [case.low, case.high, (case.low + case.high) / 2]
+            points += [case.low + width * g.uniform(size=width.shape) for _ in range(CHECK_POINTS)]
+            x = torch.from_numpy(np.stack(points)).reshape(shape)
+            self.reference.check(x.float(), self._on_device(self.model), self._on_device(self.bounds.forward))
+
+    def _on_device(self, network):
+        device = next(iter(self.bounds.traced.buffers()), torch.zeros(0)).device
+        return lambda v: network(v.to(device))
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How an instance is answered (``task=verify``'s settings)."""
+
+    relaxation: str = "crown"
+    max_boxes: int = 4096
+    seed: int = 0
+    max_model_bytes: int = MAX_MODEL_BYTES
+    max_property_bytes: int = MAX_PROPERTY_BYTES
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> Settings:
+        t = cfg.task
+        return cls(str(t.relaxation), int(t.max_boxes), int(cfg.seed), int(float(t.max_model_mb) * 2**20),
+                   int(float(t.max_property_mb) * 2**20))  # fmt: skip
+
+
+def verify_instance(
+    onnx: Path,
+    vnnlib: Path,
+    timeout: float,
+    settings: Settings = Settings(),
+    device: torch.device | None = None,
+    networks: dict | None = None,
+) -> tuple[BoxVerdict, str]:
+    """One instance's verdict and, for ``error``, why it is not answered (module docstring).
+    ``networks`` caches the networks read (and those refused) across the instances of a benchmark."""
+    start = time.perf_counter()
+    networks = {} if networks is None else networks
+    device = device or torch.device("cpu")
+    try:
+        source = _existing(Path(onnx))
+        if source not in networks:  # a benchmark names one network in many instances: read it once
+            try:
+                networks[source] = Network.read(source, device, settings.max_model_bytes)
+            except MrcertError as exc:
+                networks[source] = exc  # refused once, for each of its instances
+        network = networks[source]
+        if isinstance(network, MrcertError):
+            raise network
+        cases = read_cases(_existing(Path(vnnlib)), network.inputs, network.outputs, settings.max_property_bytes)
+        network.check(cases, settings.seed)
+        return answer(network, cases, timeout, settings, start), ""
+    except MrcertError as exc:  # this instance cannot be answered
+        return BoxVerdict("error", float("nan"), 0, 0), str(exc)
+
+
+def answer(network: Network, cases: list[Property], timeout: float, settings: Settings, start: float) -> BoxVerdict:
+    """An instance's verdict over its input boxes: ``sat`` as soon as one box is (its counterexample
+    checked by the reference executor), ``unsat`` when every box is, else what the first box
+    left open got (``timeout`` or ``unknown``)."""
+    shape = (1, *network.model.input_shape[1:])
+    boxes = forwards = 0
+    margin = np.inf
+    for case in cases:
+        remaining = max(timeout - (time.perf_counter() - start), 0.0)
+        verdict = verify_box(
+            network.model, network.bounds, torch.from_numpy(case.low).reshape(shape),
+            torch.from_numpy(case.high).reshape(shape), case.unsafe, remaining, settings.relaxation,
+            settings.max_boxes, seed=settings.seed,
+        )  # fmt: skip
+        boxes, forwards = boxes + verdict.boxes, forwards + verdict.forward_passes
+        if verdict.result == "sat":  # the counterexample as the reference executor computes it
+            y = network.reference.reference(verdict.x.reshape(shape))[0].astype(np.float64)
+            if not (case.contains(verdict.x) and case.violated(y)):
+                verdict = BoxVerdict("unknown", verdict.margin, 0, 0)
+            verdict.y = y
+        if verdict.result != "unsat":
+            verdict.boxes, verdict.forward_passes = boxes, forwards
+            return verdict
+        margin = min(margin, verdict.margin)
+    return BoxVerdict("unsat", margin, boxes, forwards)
+
+
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     t = cfg.task
     todo = instances(t)
@@ -92,53 +207,34 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     done = log.done({i: 0 for i in range(len(todo))})
     results = ctx.output_dir / "results"
     results.mkdir(exist_ok=True)
-    networks: dict[Path, tuple[torch.nn.Module, BoundNetwork]] = {}
-    with tempfile.TemporaryDirectory() as scratch:
-        for i in progress([i for i in range(len(todo)) if i not in done], "verify"):
-            onnx_path, vnnlib_path, timeout = todo[i]
-            start = time.perf_counter()
-            source = _existing(onnx_path)
-            if source not in networks:  # a benchmark names one network in many instances: read it once
-                model = read_onnx(_plain(source, Path(scratch))).to(device)
-                networks[source] = (model, BoundNetwork(model))
-            model, network = networks[source]
-            prop = read_vnnlib(_plain(_existing(vnnlib_path), Path(scratch)))
-            shape = (1, *model.input_shape[1:])
-            if prop.low.size != int(torch.tensor(shape).prod()):
-                raise MrcertError(f"{vnnlib_path}: {prop.low.size} inputs where {onnx_path} takes {shape}")
-            low = torch.from_numpy(prop.low).reshape(shape)
-            high = torch.from_numpy(prop.high).reshape(shape)
-            remaining = max(timeout - (time.perf_counter() - start), 0.0)
-            verdict = verify_box(
-                model,
-                network,
-                low,
-                high,
-                prop.unsafe,
-                remaining,
-                str(t.relaxation),
-                int(t.max_boxes),
-                seed=int(cfg.seed),
-            )
-            text = verdict.result + "\n"
-            if verdict.result == "sat":
-                text += counterexample_text(verdict.x, verdict.y)
-            (results / f"{i}.txt").write_text(text)
-            if t.result and len(todo) == 1:
-                Path(str(t.result)).write_text(text)
-            log.append(
-                {
-                    "idx": i,
-                    "onnx": onnx_path.name,
-                    "vnnlib": vnnlib_path.name,
-                    "result": verdict.result,
-                    "margin": float(verdict.margin),
-                    "boxes": verdict.boxes,
-                    "forward_passes": verdict.forward_passes,
-                    "seconds": time.perf_counter() - start,
-                    "timeout": float(timeout),
-                }
-            )
+    networks: dict[Path, Network | MrcertError] = {}
+    settings = Settings.from_config(cfg)
+    for i in progress([i for i in range(len(todo)) if i not in done], "verify"):
+        onnx_path, vnnlib_path, timeout = todo[i]
+        start = time.perf_counter()
+        verdict, reason = verify_instance(onnx_path, vnnlib_path, timeout, settings, device, networks)
+        if reason:  # this instance is not answered; the others are
+            print(f"error: instance {i} ({onnx_path.name}, {vnnlib_path.name}): {reason}", file=sys.stderr)
+        text = verdict.result + "\n"
+        if verdict.result == "sat":
+            text += counterexample_text(verdict.x, verdict.y)
+        (results / f"{i}.txt").write_text(text)
+        if t.result and len(todo) == 1:
+            Path(str(t.result)).write_text(text)
+        log.append(
+            {
+                "idx": i,
+                "onnx": onnx_path.name,
+                "vnnlib": vnnlib_path.name,
+                "result": verdict.result,
+                "margin": float(verdict.margin),
+                "boxes": verdict.boxes,
+                "forward_passes": verdict.forward_passes,
+                "seconds": time.perf_counter() - start,
+                "timeout": float(timeout),
+                "reason": reason,
+            }
+        )
     ctx.tracker.log_artifact(results)
     metrics = log_headline(ctx, "verify", log.path, cfg)
     command = launch_command() or "mrcert task=verify " + " ".join(
@@ -219,7 +315,7 @@ class Verify(Task):
     )
     reusable = False
     log = "verify.tsv"
-    columns = ("idx", "onnx", "vnnlib", "result", "margin", "boxes", "forward_passes", "seconds", "timeout")
+    columns = ("idx", "onnx", "vnnlib", "result", "margin", "boxes", "forward_passes", "seconds", "timeout", "reason")
     headline = ("verified", "falsified", "seconds_total")
 
     def title(self, cfg: DictConfig) -> str:
@@ -227,12 +323,13 @@ class Verify(Task):
 
     def summarize(self, log, cfg: DictConfig) -> dict[str, float]:
         """How many instances each answer got, and the seconds they took."""
-        counts = {r: float((log["result"] == r).sum()) for r in ("unsat", "sat", "unknown", "timeout")}
+        counts = {r: float((log["result"] == r).sum()) for r in ("unsat", "sat", "unknown", "timeout", "error")}
         return {
             "verified": counts["unsat"],
             "falsified": counts["sat"],
             "unknown": counts["unknown"],
             "timeout": counts["timeout"],
+            "error": counts["error"],
             "instances": float(len(log)),
             "seconds_total": float(log["seconds"].sum()),
         }
