@@ -257,3 +257,45 @@ def test_an_input_that_is_not_a_regular_file_is_refused_before_any_run(path, tmp
     )
     assert done.returncode == 2 and f"data.path={value!r} is not a regular file" in done.stderr
     assert store_runs(tmp_path) == [] if (tmp_path / "mlflow.db").exists() else True
+
+
+def test_a_run_whose_seals_were_deleted_is_never_sealed_by_a_gather(store, tmp_path):
+    """The laundering trial: a train run's seal tags deleted and its best.pt swapped. Its own store
+    refuses the model; gathered, it is copied as unsealed, not sealed as it now is, and refused there too."""
+    from mrcert.infra.key_migration import SEAL_SCHEME
+
+    out = copy_of(store, tmp_path)
+    client = mlflow.MlflowClient()
+    assert client.get_experiment_by_name("mrcert").tags.get(SEAL_SCHEME[0]) == SEAL_SCHEME[1]
+    (train,) = [r for r in store_runs(out) if r.data.tags.get("mrcert.task") == "train"]
+    for key in [k for k in train.data.tags if k.startswith("mrcert.sealed.")]:
+        client.delete_tag(train.info.run_id, key)
+    (best,) = (out / "mlartifacts").rglob("checkpoints/best.pt")
+    state = torch.load(best, weights_only=True)
+    state["model"] = {k: v + 1 if v.is_floating_point() else v for k, v in state["model"].items()}
+    torch.save(state, best)
+    refused = run_cli([*CERTIFY, "task.n=41"], out)
+    assert refused.returncode == 2 and "recorded no seal of its best.pt" in refused.stderr
+    here = tmp_path / "here"
+    done = run_cli(["task=gather", f"task.store={out}"], here)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"gathered unsealed: run {train.info.run_id}'s best.pt, last.pt carry no seal" in done.stdout
+    (copy,) = [r for r in store_runs(here) if r.data.tags.get("mrcert.gathered_from") == train.info.run_id]
+    assert copy.data.tags.get("mrcert.unsealed") == "true" and "mrcert.sealed_late" not in copy.data.tags
+    assert not any(k.startswith("mrcert.sealed.") for k in copy.data.tags)
+    again = run_cli([*CERTIFY, "task.n=41"], here)  # a later launch of the new store seals nothing either
+    assert again.returncode == 2 and "recorded no seal of its best.pt" in again.stderr
+
+
+def test_every_copy_of_a_sealed_log_in_a_run_is_checked_by_a_gather(store, tmp_path):
+    """A forged log at the run's root with the genuine one moved to a folder that sorts first."""
+    out = copy_of(store, tmp_path)
+    (artifact,) = (out / "mlartifacts").rglob("certify.tsv")
+    (artifact.parent / "a").mkdir()
+    shutil.copy(artifact, artifact.parent / "a" / "certify.tsv")
+    forge(artifact)
+    done = run_cli(["task=gather", f"task.store={out}"], tmp_path / "here")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "not gathered: run" in done.stdout and "certify.tsv" in done.stdout
+    tasks = [r.data.tags.get("mrcert.task") for r in store_runs(tmp_path / "here", "attributes.status = 'FINISHED'")]
+    assert "certify" not in tasks

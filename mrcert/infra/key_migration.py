@@ -18,7 +18,7 @@ migrates what it copies.
 Runs that finished before runs sealed their files (:mod:`mrcert.infra.seals`) are sealed once,
 as their files are when this version first opens the store (:func:`seal_finished`; the store
 is then tagged :data:`SEAL_SCHEME`, each such run ``mrcert.sealed_late``): from then on, a
-change to them is refused as to any other run's.
+change to them is refused as to any other run's. A copy tagged :data:`UNSEALED` is never sealed.
 """
 
 from __future__ import annotations
@@ -43,6 +43,10 @@ SEAL_SCHEME = ("mrcert.seal_scheme", "sealed")
 
 GATHERED = "mrcert.gathered_from"
 """Tag of a run ``task=gather`` copied: the id of the run it was copied from."""
+
+UNSEALED = "mrcert.unsealed"
+"""Tag of a copy whose files its source held without seals, in a store whose runs are sealed:
+nothing vouches for them, and they are never sealed late."""
 
 
 class _StoreRuns:
@@ -116,7 +120,7 @@ def seal_finished(client, experiment_id: str) -> int:
     for run in all_runs(client, experiment_id, FINISHED):
         tags = run.data.tags
         task = TASKS.get(tags.get("mrcert.task", ""))
-        if task is None or any(k.startswith(seals.PREFIX) for k in tags):
+        if task is None or UNSEALED in tags or any(k.startswith(seals.PREFIX) for k in tags):
             continue
         found = {}
         for name in seals.sealed_files(tags["mrcert.task"], task.log):

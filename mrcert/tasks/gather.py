@@ -20,6 +20,13 @@ what it lacks, and it is counted in ``without_artifacts``, as a run whose artifa
 ``task.without`` leaves files of those names behind on purpose (``[last.pt]``: a store packed for
 another machine with its models but not their resume state), with the same line and count.
 
+A store whose runs are sealed vouches for nothing it holds unsealed: a task run there whose
+files carry no seal (its seals deleted, say) is copied as it is, tagged ``mrcert.unsealed``, named
+in one line and counted in ``unsealed``, and never sealed here; no table reads it and no task
+loads its checkpoint, as in its own store. Only runs of a store made before runs sealed their
+files (one never tagged as sealed) are sealed once copied, as their files then are, which is
+what opening that store would do.
+
 A run gathered back into the store it came from is already there: a source run whose
 ``mrcert.gathered_from`` names a run here is not copied, so that two stores gathered into each
 other in turn (a store carried between machines) hold each run once.
@@ -42,10 +49,10 @@ from mrcert.errors import MrcertError
 from mrcert.infra import seals
 from mrcert.infra.experiment import ensure_experiment
 from mrcert.infra.identity import Identity
-from mrcert.infra.key_migration import GATHERED, migrate, seal_finished
+from mrcert.infra.key_migration import GATHERED, SEAL_SCHEME, UNSEALED, migrate, seal_finished
 from mrcert.infra.run_store import FINISHED, all_runs
 from mrcert.infra.store import run_artifacts
-from mrcert.infra.tasks import HELPER_IGNORES, Task
+from mrcert.infra.tasks import HELPER_IGNORES, TASKS, Task
 from mrcert.infra.tracking import RunContext
 
 BATCH = 100  # MLflow's log_batch takes at most 100 params or tags and 1000 metrics per call
@@ -96,24 +103,37 @@ def _artifacts(client, run, folder: Path | None, into: Path) -> bool:
 
 def _checked(run, files: Path) -> tuple[str | None, list[str]]:
     """Why a source run's artifacts (copied into ``files``) are not what the run sealed (or None),
-    and the sealed files it lacks."""
+    and the sealed files it lacks. Every copy of a sealed file's name in the run is checked."""
     absent = []
     for name in (k[len(seals.PREFIX) :] for k in run.data.tags if k.startswith(seals.PREFIX)):
         found = sorted(files.rglob(name))
         if not found:
             absent.append(name)
-            continue
         try:
-            seals.verify(run.info.run_id, run.data.tags, found[0])
+            for path in found:
+                seals.verify(run.info.run_id, run.data.tags, path)
         except MrcertError as exc:
             return str(exc), absent
     return None, absent
 
 
-def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str, str], without: tuple[str, ...]) -> str:
+def _unsealed(run, files: Path) -> list[str]:
+    """The files a task run seals that it holds without any seal (a source that cannot vouch for them)."""
+    tags = run.data.tags
+    task = TASKS.get(tags.get("mrcert.task", ""))
+    if task is None or any(k.startswith(seals.PREFIX) for k in tags):
+        return []
+    return [n for n in seals.sealed_files(tags["mrcert.task"], task.log) if any(files.rglob(n))]
+
+
+def _copy(
+    src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str, str], without: tuple[str, ...], vouched: bool
+) -> str:
     """One run copied into ``dst``, FINISHED last; its new id recorded in ``ids``. Returns
-    ``copied``, ``without_artifacts`` (all of them or some sealed ones are gone: each named), or
-    why it was refused (a sealed file that is not what its run sealed: nothing of it is copied)."""
+    ``copied``, ``without_artifacts`` (all of them or some sealed ones are gone: each named),
+    ``unsealed`` (files the run should have sealed and did not, in a store whose runs are sealed:
+    ``vouched``; copied as they are, tagged ``mrcert.unsealed``, never sealed here), or why it was
+    refused (a sealed file that is not what its run sealed: nothing of it is copied)."""
     from mlflow.entities import Metric, Param, RunTag
 
     source_id = run.info.run_id
@@ -132,6 +152,13 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
             return refused
         if absent:
             print(f"gathered without its {', '.join(absent)}: run {source_id}")
+        unsealed = _unsealed(run, files) if vouched else []
+        if unsealed:
+            tags[UNSEALED] = "true"
+            print(
+                f"gathered unsealed: run {source_id}'s {', '.join(unsealed)} carry no seal in a store whose runs "
+                "are sealed; no table reads them and no task loads them"
+            )
         # Made with no key: until its end a half-made copy is nothing a task could resume or a table read.
         new = dst.create_run(
             experiment_id, start_time=run.info.start_time, tags={GATHERED: source_id}, run_name=run.info.run_name
@@ -156,7 +183,7 @@ def _copy(src, dst, run, experiment_id: str, folder: Path | None, ids: dict[str,
             dst.log_artifacts(new_id, str(files))
     dst.set_terminated(new_id, "FINISHED", end_time=run.info.end_time)
     ids[source_id] = new_id
-    return "without_artifacts" if lost or absent else "copied"
+    return "without_artifacts" if lost or absent else "unsealed" if unsealed else "copied"
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
@@ -178,18 +205,20 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             ids[origin] = r.info.run_id
         elif origin:  # a copy a kill left unfinished: made again below
             dst.delete_run(r.info.run_id)
-    totals = {"gathered": 0, "already_here": 0, "without_artifacts": 0, "kept_keys": 0, "refused": 0}
+    totals = {"gathered": 0, "already_here": 0, "without_artifacts": 0, "unsealed": 0, "kept_keys": 0, "refused": 0}
     without = tuple(str(name) for name in cfg.task.without)
+    vouched = exp.tags.get(SEAL_SCHEME[0]) == SEAL_SCHEME[1]  # its runs sealed: an unsealed one is not vouched for
     for r in _finished_runs(src, exp.experiment_id):
         back = r.data.tags.get(GATHERED)  # a copy of a run of this store's: the run itself is here
         if r.info.run_id in ids or r.info.run_id in here or back in here:
             ids.setdefault(r.info.run_id, back if back in here else r.info.run_id)
             totals["already_here"] += 1
             continue
-        outcome = _copy(src, dst, r, experiment_id, folder, ids, without)
-        if outcome in ("copied", "without_artifacts"):
+        outcome = _copy(src, dst, r, experiment_id, folder, ids, without, vouched)
+        if outcome in ("copied", "without_artifacts", "unsealed"):
             totals["gathered"] += 1
             totals["without_artifacts"] += outcome == "without_artifacts"
+            totals["unsealed"] += outcome == "unsealed"
         else:
             totals["refused"] += 1
             print(f"not gathered: {outcome}")
@@ -203,6 +232,7 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
             if totals["without_artifacts"]
             else ""
         )
+        + (f"; {totals['unsealed']} unsealed" if totals["unsealed"] else "")
         + (f"; {totals['kept_keys']} kept their keys" if totals["kept_keys"] else "")
         + (f"; {totals['refused']} refused: their files are not what they sealed" if totals["refused"] else "")
         + ")"
