@@ -3,7 +3,7 @@
 On one test view of the quick synthetic MetaRoom (``experiment=reproduce_quick``, the view
 cropped for the interval as certification crops it), for each axis and each piece -- across no
 motion ``[-a, a]`` and on either side, ``[-a, 0]`` and ``[0, a]`` -- the share of pixels whose box
-(``mrcert.core.pose_bounds.image_boxes``, what bound propagation and pixel-wise smoothing bound
+(``mrcert.core.verification.image_bounds.image_boxes``, what bound propagation and pixel-wise smoothing bound
 with) has a non-zero width, and their mean width; beside it the share of pixels that differ from
 the reference image in the images rendered at poses drawn in the piece (its ends, poses 1e-9
 from no motion, and ``--poses`` uniform draws): a lower bound of what any sound box must leave
@@ -35,7 +35,7 @@ def main() -> None:
 
     from mrcert.core.axes import axis_index
     from mrcert.core.methods.bound_propagation import BoundPropagation
-    from mrcert.core.pose_bounds import image_boxes
+    from mrcert.core.verification.image_bounds import image_boxes
     from mrcert.data.sources import load
     from mrcert.infra.config import CONF_DIR
 

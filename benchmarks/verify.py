@@ -51,9 +51,9 @@ def measure(arch: str, args, device, sync) -> None:
     from mrcert.core.methods.bound_propagation import BoundPropagation
     from mrcert.core.methods.camera_motion import CameraMotionSmoothing
     from mrcert.core.models import build_model, for_inference
-    from mrcert.core.pose_bounds import image_boxes
-    from mrcert.core.propagation import BoundNetwork
     from mrcert.core.sampling import SmoothedClassifier, image_generator
+    from mrcert.core.verification.image_bounds import image_boxes
+    from mrcert.core.verification.network import BoundNetwork
     from mrcert.data.sources import load
     from mrcert.infra.config import CONF_DIR
     from mrcert.infra.runtime import batch_size, render_batch

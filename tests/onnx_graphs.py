@@ -42,11 +42,11 @@ class Reference:
 
         options = ort.SessionOptions()
         options.intra_op_num_threads = 1
-        self.session = ort.InferenceSession(m.SerializeToString(), options, providers=["CPUExecutionProvider"])
+        self.runner = ort.InferenceSession(m.SerializeToString(), options, providers=["CPUExecutionProvider"])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, np.float32)
-        rows = [self.session.run(None, {"x": x[i : i + 1]})[0].reshape(1, -1) for i in range(len(x))]
+        rows = [self.runner.run(None, {"x": x[i : i + 1]})[0].reshape(1, -1) for i in range(len(x))]
         return np.concatenate(rows).astype(np.float64)
 
 

@@ -139,7 +139,7 @@ def test_images_rendered_on_the_gpu_lie_in_their_pose_boxes(axis, backend):
     """The GPU kernels may round a column differently from the CPU kernel (fused multiply-adds):
     every image they render at 2,000 poses of a piece, points on the principal axis among them
     (the column edge u = cx), lies within the piece's box."""
-    from mrcert.core.pose_bounds import image_boxes
+    from mrcert.core.verification.image_bounds import image_boxes
 
     rng = np.random.default_rng(8)
     pts, cols = random_cloud(rng, n=50_000)
@@ -156,7 +156,7 @@ def test_images_rendered_on_the_gpu_lie_in_their_pose_boxes(axis, backend):
 
 def test_bound_propagation_on_the_gpu_gives_the_cpu_bounds():
     """Interval and backward bounds of the same box on the GPU and the CPU agree to float64 rounding."""
-    from mrcert.core.propagation import BoundNetwork
+    from mrcert.core.verification.network import BoundNetwork
 
     model = _classifier()
     g = torch.Generator().manual_seed(1)

@@ -13,7 +13,7 @@ from onnx import numpy_helper
 from torch import nn
 
 from mrcert.core.models import Normalize, SmallCNN
-from mrcert.core.propagation import BoundNetwork
+from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import read_onnx, write_onnx
 from mrcert.formats.vnnlib import read_vnnlib, write_vnnlib
@@ -161,3 +161,17 @@ def test_exported_instances_hold_every_image_of_their_piece_and_verify_back(tmp_
     assert done.returncode == 0, done.stderr[-2000:]
     (checked,) = sorted((tmp_path / "v" / "runs" / "verify").iterdir())
     assert set(pd.read_csv(checked / "verify.tsv", sep="\t")["result"]) <= {"unsat", "sat", "unknown", "timeout"}
+
+
+def test_the_verification_page_states_what_the_reader_reads_and_refuses():
+    """docs/verification.md's section on what is read is the one the reader's own tables give,
+    with the limits task=verify's config sets."""
+    from omegaconf import OmegaConf
+
+    from mrcert.formats.onnx_model import MAX_MODEL_BYTES
+    from mrcert.formats.vnnlib import MAX_PROPERTY_BYTES
+    from mrcert.tasks.verify import reading_section
+
+    assert reading_section() in (ROOT / "docs" / "verification.md").read_text()
+    conf = OmegaConf.load(ROOT / "conf" / "task" / "verify.yaml")
+    assert conf.max_model_mb * 2**20 == MAX_MODEL_BYTES and conf.max_property_mb * 2**20 == MAX_PROPERTY_BYTES

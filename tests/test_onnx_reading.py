@@ -10,7 +10,7 @@ import pytest
 import torch
 from onnx import helper
 
-from mrcert.core.propagation import BoundNetwork
+from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import ATTRIBUTES, ReferenceCheck, read_onnx
 from mrcert.tasks.verify import Settings, verify_instance

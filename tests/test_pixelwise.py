@@ -11,8 +11,8 @@ from scipy.stats import norm
 from mrcert.__main__ import run_task
 from mrcert.core.methods import build_method
 from mrcert.core.methods.pixelwise import PixelNoise, PixelwiseSmoothing, frame_motions, interval_certified
-from mrcert.core.pose_bounds import piece_bounds
 from mrcert.core.projection import project
+from mrcert.core.verification.image_bounds import piece_bounds
 from mrcert.data.sources import load
 from mrcert.errors import ConfigError, MrcertError
 from mrcert.infra.checkpoints import load_classifier

@@ -13,8 +13,8 @@ from torch import nn
 from mrcert.core.methods.base import BaseClassifier, CertifyRequest
 from mrcert.core.methods.bound_propagation import BoundPropagation, IntervalVerifier
 from mrcert.core.models import Normalize, SmallCNN
-from mrcert.core.pose_bounds import image_boxes
-from mrcert.core.propagation import BoundNetwork
+from mrcert.core.verification.image_bounds import image_boxes
+from mrcert.core.verification.network import BoundNetwork
 from mrcert.data.samples import TestSample
 from mrcert.errors import ConfigError, MrcertError
 from tests.conftest import PAPER_K, compose_cfg

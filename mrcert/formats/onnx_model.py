@@ -3,7 +3,7 @@
 :func:`read_onnx` turns an ONNX graph of the operators feed-forward image classifiers use
 (:data:`ATTRIBUTES`: the VNN-COMP MetaRoom CNNs, and what :func:`write_onnx` writes) into an
 :class:`OnnxNetwork`, a module whose forward pass applies the graph's nodes in order with torch
-functions, so that it runs on any device and :class:`~mrcert.core.propagation.BoundNetwork` can
+functions, so that it runs on any device and :class:`~mrcert.core.verification.network.BoundNetwork` can
 read it. The network is the file's or none:
 
 * every attribute of every operator read is either implemented, with the ONNX specification's
@@ -61,6 +61,28 @@ ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "Dropout": ("ratio", "seed", "is_test"),
 }
 OPERATORS = tuple(ATTRIBUTES)
+REFUSED: dict[str, str] = {
+    "Conv": "other than 2-D; a weight or bias the graph computes; kernel_shape other than the weight's; auto_pad "
+    "beside pads",
+    "Gemm": "transA=1; B or C computed by the graph; C that does not broadcast to (1, K)",
+    "MatMul": "a right operand computed by the graph or not 2-D",
+    "Add": "a constant that broadcasts the batch; two computed tensors of different shapes",
+    "Sub": "a constant that broadcasts the batch; two computed tensors",
+    "Mul": "a constant that broadcasts the batch; two computed tensors",
+    "Div": "a computed divisor; a constant divisor with zeros",
+    "Flatten": "axis other than 1",
+    "Reshape": "a shape the graph computes; one that does not keep the batch first; allowzero=1 with a 0",
+    "MaxPool": "dilations other than 1; unequal pads on two sides (after auto_pad); ceil_mode=1 where it adds a "
+    "window; its Indices output used",
+    "AveragePool": "dilations other than 1; unequal pads with count_include_pad=0; ceil_mode=1 where it adds a window",
+    "GlobalAveragePool": "other than (N, C, H, W)",
+    "BatchNormalization": "training_mode=1; spatial=0; statistics the graph computes; its running outputs used",
+    "Constant": "sparse_value, value_string(s), value_float(s)/value_int(s) beside value",
+    "Identity": "",
+    "Dropout": "training_mode=True; its mask used",
+    "Relu": "",
+}
+"""What each operator is refused for beyond an attribute it does not carry (docs/verification.md)."""
 
 FLOAT_TYPES = (1, 10, 11, 16)  # FLOAT, FLOAT16, DOUBLE, BFLOAT16: read as float32
 ITEM_BYTES = {1: 4, 2: 1, 3: 1, 4: 2, 5: 2, 6: 4, 7: 8, 9: 1, 10: 2, 11: 8, 12: 4, 13: 8, 16: 2}
@@ -630,16 +652,16 @@ class ReferenceCheck:
         options.intra_op_num_threads = 1
         options.log_severity_level = 3
         try:
-            self.session = ort.InferenceSession(net.source, options, providers=["CPUExecutionProvider"])
+            self.runner = ort.InferenceSession(net.source, options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # noqa: BLE001 - a file onnxruntime refuses is no network to answer about
             raise MrcertError(f"{label}: the reference executor (onnxruntime) cannot run it: "
                               f"{str(exc).splitlines()[0]}") from None  # fmt: skip
         self.net, self.label = net, label
-        self.name = self.session.get_inputs()[0].name
+        self.name = self.runner.get_inputs()[0].name
 
     def reference(self, x: np.ndarray) -> np.ndarray:
         """The executor's outputs (B, K) at the inputs ``x`` (B, ...), one point at a time."""
-        rows = [self.session.run(None, {self.name: x[i : i + 1].astype(np.float32)})[0] for i in range(len(x))]
+        rows = [self.runner.run(None, {self.name: x[i : i + 1].astype(np.float32)})[0] for i in range(len(x))]
         return np.concatenate([r.reshape(1, -1) for r in rows])
 
     def check(self, x: torch.Tensor, *networks) -> float:

@@ -4,7 +4,7 @@ The base classifier is written once (``model.onnx``, the image as input); for ev
 of the job and every piece of ``[-motion.radius, motion.radius]`` on ``motion.axis`` cut into
 ``task.pieces``, a VNN-LIB property bounds each input by the lowest and highest value the pixel
 and channel take in any image projected from a pose of the piece
-(:func:`~mrcert.core.pose_bounds.image_boxes`, the bounds ``method=bound_propagation`` uses),
+(:func:`~mrcert.core.verification.image_bounds.image_boxes`, the bounds ``method=bound_propagation`` uses),
 and calls unsafe any other class's logit reaching the label's. ``instances.csv`` lists them as
 the competition does (onnx,vnnlib,timeout); an image is robust on its interval when all its
 pieces are ``unsat``. ``mrcert task=verify task.instances=.../instances.csv`` checks them.
@@ -20,7 +20,7 @@ import torch
 from omegaconf import DictConfig
 
 from mrcert.core.axes import axis_index
-from mrcert.core.pose_bounds import image_boxes
+from mrcert.core.verification.image_bounds import image_boxes
 from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import write_onnx
 from mrcert.formats.vnnlib import write_vnnlib

@@ -1,11 +1,11 @@
 """``task=verify``: VNN-LIB properties of ONNX classifiers answered as the competition's tools
 answer them (``unsat``, ``sat`` with a counterexample, ``unknown``, ``timeout``), by bound
-propagation with input splitting (:func:`mrcert.core.methods.bound_propagation.verify_box`), over
+propagation with input splitting (:func:`mrcert.core.verification.boxes.verify_box`), over
 each input box of the property (:func:`mrcert.formats.vnnlib.read_cases`).
 
 Before an instance is answered, the network mrcert read is run beside the file itself, by an
-independent executor (onnxruntime), at the corners, the centre and seeded random points of each
-box; a difference beyond float tolerance, a file mrcert refuses (an attribute it does not read,
+independent executor (onnxruntime), at the lowest and highest corner, the centre and seeded
+random points of each box; a difference beyond float tolerance, a file mrcert refuses (an attribute it does not read,
 sizes that do not match the property, a malformed property, one beyond ``task.max_model_mb`` or
 ``task.max_property_mb``) is ``error`` with its reason in the instance's row, and the other
 instances are answered. A counterexample is reported with the executor's outputs, and only when
@@ -30,8 +30,8 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig
 
-from mrcert.core.methods.bound_propagation import BoxVerdict, verify_box
-from mrcert.core.propagation import BoundNetwork
+from mrcert.core.verification.boxes import BoxVerdict, verify_box
+from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import MrcertError
 from mrcert.formats.onnx_model import MAX_MODEL_BYTES, ReferenceCheck, read_onnx
 from mrcert.formats.vnnlib import MAX_PROPERTY_BYTES, Property, counterexample_text, read_cases
@@ -110,7 +110,7 @@ class Network:
 
     def check(self, cases: list[Property], seed: int) -> None:
         """Refuse (one line) a reading of the file whose outputs are not the reference executor's
-        at the corners, the centre and seeded random points of each box."""
+        at the lowest and highest corner, the centre and seeded random points of each box."""
         g = np.random.default_rng(seed)
         shape = (-1, *self.model.input_shape[1:])
         for case in cases:
@@ -256,6 +256,52 @@ PUBLISHED = Path(__file__).resolve().parents[1] / "formats" / "vnncomp2023_metar
 TOOLS = {"alpha_beta_crown": "alpha-beta-CROWN", "neuralsat": "NeuralSAT", "pyrat": "PyRAT", "nnenum": "nnenum"}
 
 
+def reading_section() -> str:
+    """What ``task=verify`` reads and refuses, from the reader's own tables (the page's section)."""
+    from mrcert.formats.onnx_model import ATTRIBUTES, REFUSED
+    from mrcert.formats.vnnlib import MAX_DISJUNCTS
+
+    lines = [
+        "## What is read, and what is refused",
+        "",
+        "Every operator below is computed as the ONNX specification defines it, each attribute with the",
+        "specification's default where the file gives none; anything else (another operator, a node of",
+        "another domain, an attribute not listed, a value listed as refused) makes the instance `error`,",
+        "with one line naming the node, the attribute and its value, and the benchmark's other instances",
+        "are answered.",
+        "",
+        "| operator | attributes read | refused |",
+        "|---|---|---|",
+    ]
+    for op, attrs in ATTRIBUTES.items():
+        lines.append(f"| {op} | {', '.join(attrs) or '-'} | {REFUSED[op] or '-'} |")
+    lines += [
+        "",
+        "VNN-LIB: the top-level assertions hold together; a formula is a comparison (`<=`, `>=`) of linear",
+        "terms over inputs alone (a bound) or outputs alone, or an `and` / `or` of formulas; a disjunction of",
+        f"input boxes is answered box by box (at most {MAX_DISJUNCTS:,} disjuncts). Names are checked against",
+        "the declarations (numbered from 0, no gap) and the network's input and output sizes; NaN and",
+        "infinities are refused; a malformed file is one line naming the file and the line.",
+        "",
+        "Limits (settings of `task=verify`): a model whose tensors claim more than "
+        f"`task.max_model_mb` = {MAX_MODEL_BYTES // 2**20} MB",
+        "(initializers and external data, counted before any is loaded; external data only from the",
+        f"model's folder), a property file larger than `task.max_property_mb` = {MAX_PROPERTY_BYTES // 2**20} MB",
+        "once unzipped (refused before it is parsed).",
+        "",
+        "The cross-check: before an instance is answered, mrcert's reading of the network (the float32",
+        "module that falsification runs and the float64 layers that bounds pass through) is run beside",
+        "the file itself, by onnxruntime, at the lowest and the highest corner, the centre and",
+        f"{CHECK_POINTS} seeded random points of each box; a difference beyond {ReferenceCheck.ATOL:g} +",
+        f"{ReferenceCheck.RTOL:g} x the largest output refuses the instance (`error`). A counterexample is",
+        "reported with onnxruntime's outputs, and only when they lie in the unsafe region.",
+        "",
+        "Soundness is checked on random networks over every operator and attribute above against the",
+        "exact truth of a mixed-integer program (`tests/test_verify_fuzz.py`; `make test-full` runs 420).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 def comparison(log: pd.DataFrame, machine: str, command: str) -> str | None:
     """This run's answers beside the published ones on the same instances (matched by property
     file), as Markdown; None unless every instance of the run is one of theirs."""
@@ -301,8 +347,9 @@ def comparison(log: pd.DataFrame, machine: str, command: str) -> str | None:
         "Instances this run left unanswered: "
         + (", ".join(f"{n} ({ours[n]})" for n in sorted(ours) if ours[n] not in ("unsat", "sat")) or "none")
         + ".",
+        "",
     ]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n" + reading_section()
 
 
 class Verify(Task):

@@ -2,9 +2,9 @@
 
 A test image is certified for the whole interval ``[-a, a]`` on one motion axis, for the base
 classifier itself, with no samples and no probability: the interval is cut into pieces; for
-each piece :func:`~mrcert.core.pose_bounds.image_boxes` bounds every pixel and channel of any
+each piece :func:`~mrcert.core.verification.image_bounds.image_boxes` bounds every pixel and channel of any
 image projected from a pose of the piece (occlusion, rounding, the border, the camera plane and
-empty pixels included), and :class:`~mrcert.core.propagation.BoundNetwork` pushes that box
+empty pixels included), and :class:`~mrcert.core.verification.network.BoundNetwork` pushes that box
 through the classifier to a lower bound on the margin ``y_c - y_j`` between the class ``c``
 predicted at the test pose and every other class. A piece whose bound is positive is verified;
 one that is not is bisected, until
@@ -44,8 +44,8 @@ from mrcert.core.methods.base import (
     WholeInterval,
 )
 from mrcert.core.models import predicted
-from mrcert.core.pose_bounds import image_boxes
-from mrcert.core.propagation import BoundNetwork
+from mrcert.core.verification.image_bounds import image_boxes
+from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import MrcertError
 
 SEARCH_STEPS = 8
@@ -207,8 +207,12 @@ class _Run:
                     if poses is not None:  # few enough poses to classify every one of them
                         margins = self.margins(self.logits(poses), c)
                         if margins.min() < 0:
-                            worst = int(np.argmin(margins))
-                            return self.certificate(c, "falsified", margins[worst], pieces, float(poses[worst]))
+                            worst = float(poses[int(np.argmin(margins))])
+                            alone = self.alone(worst, c)
+                            if alone < 0:
+                                return self.certificate(c, "falsified", alone, pieces, worst)
+                            # classified otherwise in a batch, as predicted alone: float rounding decides
+                            return self.certificate(c, "unknown", float(margins.min()), pieces, float("nan"))
                         verified_margin, pieces = min(verified_margin, float(margins.min())), pieces + 1
                         continue
                     heapq.heappush(queue, Piece(bound, piece.start, mid))
@@ -241,7 +245,14 @@ class _Run:
             if values[k] < margin:
                 pose, margin = float(near[k]), float(values[k])
             step /= 2
+        if margin < 0:  # the pose is classified otherwise when it is classified alone, too
+            margin = self.alone(pose, c)
         return (pose, margin) if margin < 0 else None
+
+    def alone(self, pose: float, c: int) -> float:
+        """The margin at ``pose`` classified on its own (a batch of one, as a user checks a
+        logged pose): float rounding in a batch may differ by the last digits."""
+        return float(self.margins(self.logits([pose]), c)[0])
 
     def certificate(self, c: int, outcome: str, margin: float, pieces: int, pose: float) -> Certificate:
         radius = self.m.half_width if outcome == "verified" else 0.0
@@ -261,130 +272,3 @@ class _Run:
                 "counterexample": float(pose),
             },
         )
-
-
-@dataclass
-class BoxVerdict:
-    """What :func:`verify_box` found: ``unsat`` (verified), ``sat`` (with an input ``x`` and its
-    outputs ``y``), ``unknown`` or ``timeout``; ``margin``: the least, over the disjuncts still
-    open, of the best lower bound by which one of its conjuncts fails (positive when verified)."""
-
-    result: str
-    margin: float
-    boxes: int
-    forward_passes: int
-    x: np.ndarray | None = None
-    y: np.ndarray | None = None
-
-
-def verify_box(
-    model: torch.nn.Module,
-    network: BoundNetwork,
-    low: torch.Tensor,
-    high: torch.Tensor,
-    unsafe: list[list[tuple[np.ndarray, float]]],
-    timeout: float,
-    relaxation: str = "crown",
-    max_boxes: int = 4096,
-    batch: int = 8,
-    seed: int = 0,
-) -> BoxVerdict:
-    """Whether some input of the box ``[low, high]`` (shaped as the model's input, batch 1) gives
-    outputs in the unsafe region (a VNN-LIB property's disjunction of conjunctions ``c . y + d >= 0``).
-
-    Falsification first (the box's centre and corners, seeded random points, then signed-gradient
-    steps towards the unsafe disjunct nearest to holding), then bound propagation: a disjunct is
-    ruled out on a box when one of its conjuncts' upper bound is negative; a box where some
-    disjunct stays open is split in two along the input whose width costs the bound of its
-    worst disjunct most (width times the backward relaxation's coefficient; with interval
-    bounds alone, the widest input), until every box is verified (``unsat``), a point is
-    found (``sat``), ``max_boxes`` boxes are bounded (``unknown``) or ``timeout`` seconds pass."""
-    start = time.perf_counter()
-    device = next(iter(network.traced.buffers()), torch.zeros(0)).device
-    low, high = low.to(torch.float64).to(device), high.to(torch.float64).to(device)
-    rows = [(c, d) for conj in unsafe for c, d in conj]
-    spec = torch.tensor(np.array([-c for c, _ in rows]), dtype=torch.float64)
-    offset = torch.tensor([d for _, d in rows], dtype=torch.float64, device=device)
-    owner = np.repeat(np.arange(len(unsafe)), [len(conj) for conj in unsafe])
-    groups = [torch.from_numpy(owner == k).to(device) for k in range(len(unsafe))]  # each disjunct's rows
-    forwards = 0
-
-    def outputs(x: torch.Tensor) -> np.ndarray:
-        nonlocal forwards
-        forwards += len(x)
-        with torch.inference_mode():
-            return (
-                model(x.to(device=device, dtype=next(model.parameters(), next(model.buffers())).dtype))
-                .double()
-                .cpu()
-                .numpy()
-            )
-
-    def violation(y: np.ndarray) -> np.ndarray:
-        """Per point, the least over disjuncts of the worst conjunct's slack (<= 0: unsafe holds)."""
-        slack = -(y @ np.array([c for c, _ in rows]).T + offset.cpu().numpy())  # > 0: conjunct fails
-        per = np.full((len(y), len(unsafe)), -np.inf)
-        for k in range(len(unsafe)):
-            per[:, k] = slack[:, owner == k].max(1)
-        return per.min(1)
-
-    g = torch.Generator().manual_seed(seed)
-    width = high - low
-    points = [low, high, (low + high) / 2]
-    points += [low + width * torch.rand(low.shape, generator=g, dtype=torch.float64).to(device) for _ in range(32)]
-    xs = torch.cat(points)
-    ys = outputs(xs)
-    v = violation(ys)
-    best = int(np.argmin(v))
-    x = xs[best : best + 1].clone()
-    for step in range(20):  # signed gradient steps on the float64 network
-        if v[best] <= 0 or not (width > 0).any():
-            break
-        x.requires_grad_(True)
-        with torch.inference_mode(False), torch.enable_grad():
-            y = network.forward(x)
-            slack = y @ spec.to(device).T - offset  # -(c . y + d): > 0 where the conjunct fails
-            per = torch.stack([slack[:, m].max(1).values for m in groups], 1)
-            (grad,) = torch.autograd.grad(per.min(), x)
-        x = torch.minimum(torch.maximum(x.detach() - width * 0.25 * 0.8**step * grad.sign(), low), high)
-        yx = outputs(x)
-        vx = violation(yx)[0]
-        if vx < v[best]:
-            xs[best : best + 1], ys[best], v[best] = x, yx[0], vx
-    if v[best] <= 0:
-        return BoxVerdict("sat", float(v[best]), 0, forwards, xs[best].cpu().numpy(), ys[best])
-    queue = [(low, high)]
-    boxes, worst = 0, np.inf
-    while queue:
-        if time.perf_counter() - start > timeout:
-            return BoxVerdict("timeout", -np.inf, boxes, forwards)
-        if boxes >= max_boxes:
-            return BoxVerdict("unknown", -np.inf, boxes, forwards)
-        part, queue = queue[:batch], queue[batch:]
-        lo, hi = torch.cat([p[0] for p in part]), torch.cat([p[1] for p in part])
-        bound = network.linear_lower(lo, hi, spec, relaxation) - offset  # > 0: the conjunct fails throughout
-        boxes += len(part)
-        per = torch.stack([bound[:, rows_of].max(1).values for rows_of in groups], 1)
-        margin = per.min(1).values.cpu().numpy()
-        for j, m in enumerate(margin):
-            if m > 0:
-                worst = min(worst, float(m))
-                continue
-            wide = (hi[j] - lo[j]).flatten()
-            cost = wide
-            if (wide > 0).any() and relaxation == "crown":  # split where width costs the bound most
-                weakest = groups[int(per[j].argmin())]
-                row = int(torch.nonzero(weakest)[int(bound[j, weakest].argmax())])
-                weight = network.input_weights(lo[j : j + 1], hi[j : j + 1], spec[row : row + 1])[0, 0].flatten()
-                cost = wide * weight.abs() if (wide * weight.abs() > 0).any() else wide
-            if not (wide > 0).any():  # a point whose bound does not decide: the network is evaluated there
-                y = outputs(lo[j : j + 1])
-                if violation(y)[0] <= 0:
-                    return BoxVerdict("sat", float(violation(y)[0]), boxes, forwards, lo[j].cpu().numpy(), y[0])
-                return BoxVerdict("unknown", float(m), boxes, forwards)
-            k = int(torch.argmax(cost))
-            mid = (lo[j].flatten()[k] + hi[j].flatten()[k]) / 2
-            left_hi, right_lo = hi[j : j + 1].clone(), lo[j : j + 1].clone()
-            left_hi.view(-1)[k], right_lo.view(-1)[k] = mid, mid
-            queue += [(lo[j : j + 1], left_hi), (right_lo, hi[j : j + 1])]
-    return BoxVerdict("unsat", worst, boxes, forwards)

@@ -22,9 +22,9 @@ from scipy.stats import norm
 
 from mrcert.core.axes import axis_index, unit
 from mrcert.core.methods.base import ABSTAIN, Certificate, SceneRender, WholeInterval
-from mrcert.core.pose_bounds import piece_bounds
 from mrcert.core.sampling import SmoothedClassifier, Smoothing, image_generator
 from mrcert.core.sequential import lower_confidence_bound
+from mrcert.core.verification.image_bounds import piece_bounds
 from mrcert.errors import MrcertError
 
 NOISE_BLOCK = 16
