@@ -93,6 +93,7 @@ bench: $(STAMP) ## benchmarks, each beside a reference measured in the same run 
 	$(PY) benchmarks/projection.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/certify.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/verify.py --threads $(THREADS) --device $(DEVICE)
+	$(PY) benchmarks/enumeration.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/train.py --threads $(THREADS) --device $(DEVICE)
 	$(PY) benchmarks/sequential.py
 

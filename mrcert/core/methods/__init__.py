@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig
 
-from mrcert.core.methods.schemas import BoundPropagationConfig, MethodConfig, PixelwiseConfig
+from mrcert.core.methods.schemas import BoundPropagationConfig, EnumerationConfig, MethodConfig, PixelwiseConfig
 from mrcert.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -49,6 +49,8 @@ METHODS: dict[str, Registered] = {
     ),
     # Deterministic: it certifies a model trained for another method (model.trained_for) or vanilla.
     "bound_propagation": Registered("mrcert.core.methods.bound_propagation:BoundPropagation", BoundPropagationConfig),
+    # Deterministic and complete: every image of a translation interval enumerated.
+    "enumeration": Registered("mrcert.core.methods.enumeration:ImageEnumeration", EnumerationConfig),
 }
 
 FORMER_NAMES = {"motion": "camera_motion"}

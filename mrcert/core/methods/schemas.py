@@ -85,3 +85,20 @@ class BoundPropagationConfig(MethodConfig):
             raise ConfigError(
                 f"{where}.half_width", method["half_width"], f"< pi/2 on {axis} (each piece narrower than pi)"
             )
+
+
+@dataclass
+class EnumerationConfig(MethodConfig):
+    half_width: float = checked(HALF_WIDTH)  # the certified interval [-half_width, half_width] on motion.axis
+    relaxation: str = checked(one_of("interval", "crown"))
+    run_images: int = checked(at_least(1))  # a run of at most this many images is classified image by image
+    max_bounds: int = checked(at_least(1))  # runs bounded at most per image (then: unknown)
+    batch: int = checked(at_least(1))  # images classified at once
+    crown_neurons: int = checked(at_least(0))  # ReLU layers of at most this many neurons get backward-pass bounds
+
+    @staticmethod
+    def relations(method: Mapping[str, Any], where: str, root: Mapping[str, Any]) -> None:
+        """The images of an interval are enumerated along a translation."""
+        axis = _single_axis(root)
+        if axis is not None and not is_translation(axis):
+            raise ConfigError("motion.axis", axis, "a translation (tx, ty, tz) for method=enumeration")
