@@ -204,6 +204,7 @@ CHECKED_COMPOSITIONS = [
     ["motion=txyz_rz"],
     ["method=pixelwise"],
     ["method=bound_propagation"],
+    ["method=enumeration"],
 ]
 CANDIDATES = [-1, 0, 1, 0.5, 1.5, 2.0, 2**40, -0.5, float("inf"), "x", None, [], [1.0, 0.0], ["x"]]
 
