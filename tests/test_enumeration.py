@@ -115,6 +115,11 @@ def test_depths_a_unit_in_the_last_place_apart_are_recorded_as_a_pixel_rounding_
     assert [tuple(r) for r in e.alternates(0, len(e))[:, 2:]] == [(pixel, 1)]
     low, high = e.hull(0, len(e))
     assert low[:, 6, 8].tolist() == [0.0, 0.0, 0.0] and high[:, 6, 8].tolist() == [1.0, 0.5, 0.25]
+    (k,) = {int(r[0]) for r in e.alternates(0, len(e))} & {0}
+    (variant,) = e.variants(k, 64)  # the nominal image with the pixel handed to the farther point
+    assert variant[:, 6, 8].tolist() == [1.0, 0.5, 0.25] and np.array_equal(
+        np.delete(variant.reshape(3, -1), pixel, 1), np.delete(e.images(k, k + 1)[0].reshape(3, -1), pixel, 1)
+    )
     shown = set()
     for t in np.random.default_rng(0).uniform(-0.01, 0.01, 2000):
         shown.add(tuple(zbuffer(points, colors, rank, SMALL_K, 2, float(t), SMALL_H, SMALL_W, 0.5)[:, 6, 8]))

@@ -12,12 +12,15 @@ interval is therefore decided by those images alone, and this method decides it 
   (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over the hull,
   hence over every image of the run; a run it does not prove is halved;
 * a run of at most ``run_images`` images is classified image by image, in batches; an image whose
-  margin is within float rounding of 0 is classified again on its own.
+  margin is within float rounding of 0 is classified again on its own; where rounding may hand a
+  pixel to a point of near-equal depth (tz), the image's hull (which holds those colours) is
+  bounded, and where that fails every image the records allow is classified too.
 
 Outcomes: **verified** (every image of the interval is classified ``c``: the radius is ``a``),
 **falsified** (an image classified otherwise, with the first float pose that renders it logged
 as the counterexample, checked by rendering and classifying that pose alone), **unknown** only
-when the budget (``max_bounds`` runs bounded) is spent.
+when the budget (``max_bounds`` runs bounded) is spent or an image rounding may render is
+classified otherwise (or there are more than :data:`VARIANTS` of one image).
 
 Guarantee: verified means ``h(O(V, alpha)) = c`` for every float64 ``|alpha| <= a`` on the axis,
 where ``h`` is the base classifier as it classifies one image (the hulls' bounds hold for it in
@@ -51,6 +54,9 @@ from mrcert.errors import ConfigError, MrcertError
 
 SPREAD = 33
 """Images spread evenly over the interval, classified before any run is bounded."""
+
+VARIANTS = 64
+"""The most images rounding may render beside an enumerated one that are classified (then: unknown)."""
 
 ROUNDING = 1e-4
 """A batched margin below this (relative to the logits' scale) is checked on the image alone."""
@@ -172,39 +178,58 @@ class _Run:
         if found is not None:
             return self.certificate(c, "falsified", found[1], e, found[0])
         least = np.inf
+        undecided = False  # an image rounding may render otherwise, classified otherwise that way
         todo = [(0, len(e))]
         short: list[tuple[int, int]] = []
         while todo or short:
             if short and (not todo or sum(t - s for s, t in short) >= self.m.batch):
                 found, margin = self.classify_runs(e, short, c)
+                undecided |= not self.variants_hold(e, short, c)
                 short = []
                 if found is not None:
                     return self.certificate(c, "falsified", found[1], e, found[0])
                 least = min(least, margin)
                 continue
             s, t = todo.pop()
-            if t - s <= self.m.run_images and not len(e.alternates(s, t)):
+            if t - s <= self.m.run_images:
                 short.append((s, t))
                 continue
             if self.bounded >= self.m.max_bounds:
                 return self.certificate(c, "unknown", least, e, float("nan"))
-            low, high = e.hull(s, t)
-            device = self.base.device
-            bound = float(
-                self.network.margins(
-                    torch.from_numpy(low[None]).to(device), torch.from_numpy(high[None]).to(device), c,
-                    self.m.relaxation,
-                ).min()
-            )  # fmt: skip
-            self.bounded += 1
+            bound = self.bound(e, s, t, c)
             if bound > 0:
                 least = min(least, bound)
-            elif t - s == 1:  # one image whose pixels rounding may give several colours: not decided here
-                return self.certificate(c, "unknown", bound, e, float("nan"))
             else:
                 mid = (s + t) // 2
                 todo += [(mid, t), (s, mid)]
+        if undecided:
+            return self.certificate(c, "unknown", least, e, float("nan"))
         return self.certificate(c, "verified", least, e, float("nan"))
+
+    def variants_hold(self, e: Enumeration, runs: list[tuple[int, int]], c: int) -> bool:
+        """Whether every image the runs' fragile records allow beside the enumerated ones (a pixel
+        that rounding may hand to a point of near-equal depth) is classified ``c`` too; such an
+        image is not known to be rendered, so one classified otherwise leaves the interval unknown."""
+        for s, t in runs:
+            records = e.alternates(s, t)
+            for k in sorted({k for a, b, _, _ in records.tolist() for k in range(max(a, s), min(b, t))}):
+                if self.bound(e, k, k + 1, c) > 0:  # its hull holds every colour the records allow
+                    continue
+                images = e.variants(k, VARIANTS)
+                if images is None or (len(images) and (self.margins(self.classify(images), c) < 0).any()):
+                    return False
+        return True
+
+    def bound(self, e: Enumeration, s: int, t: int, c: int) -> float:
+        """A lower bound of the least margin over the hull of images ``s`` to ``t - 1``."""
+        low, high = e.hull(s, t)
+        device = self.base.device
+        self.bounded += 1
+        return float(
+            self.network.margins(
+                torch.from_numpy(low[None]).to(device), torch.from_numpy(high[None]).to(device), c, self.m.relaxation
+            ).min()
+        )
 
     def classify_images(self, e: Enumeration, indices: np.ndarray, c: int) -> tuple[float, float] | None:
         """A pose of one of the images ``indices`` classified otherwise than ``c``, and its margin."""

@@ -28,6 +28,7 @@ winner changed (a few pixels each, where re-rendering would project every point 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numba
@@ -344,7 +345,7 @@ def _fragile_scan(
     q = head[p]
     while q >= 0:
         zq = P[q, 2]
-        if zq > zw and zq - zw <= 2.0**-49 * (abs(zq) + reach) and rank[q] < rank[w]:
+        if zq > zw and zq - zw <= 2.0**-50 * (abs(zq) + reach) and rank[q] < rank[w]:
             f_from.append(image)
             f_to.append(-1)
             f_pixel.append(p)
@@ -419,6 +420,34 @@ class Enumeration:
         """The fragile records (from, to, pixel, point) that hold for some image ``start`` to ``stop - 1``."""
         f = self.fragile
         return f[(f[:, 0] < stop) & (f[:, 1] > start)] if len(f) else f
+
+    def variants(self, k: int, limit: int) -> np.ndarray | None:
+        """Image ``k`` with every combination of the points its fragile records allow at their
+        pixels, the nominal image excluded: (V, C, H, W), empty without records; None when there
+        would be more than ``limit``."""
+        records = self.alternates(k, k + 1)
+        if not len(records):
+            return np.empty((0, self.colors.shape[1], self.height, self.width), self.colors.dtype)
+        options: dict[int, list[int]] = {}
+        for _, _, p, q in records.tolist():
+            options.setdefault(p, []).append(q)
+        count = 1
+        for points in options.values():
+            count *= len(points) + 1
+        if count - 1 > limit:
+            return None
+        nominal = self.images(k, k + 1)[0].reshape(self.colors.shape[1], -1)
+        table = self.table()
+        out = []
+        for combo in itertools.product(*([None, *points] for points in options.values())):
+            if all(q is None for q in combo):
+                continue
+            image = nominal.copy()
+            for p, q in zip(options, combo, strict=True):
+                if q is not None:
+                    image[:, p] = table[q]
+            out.append(image.reshape(-1, self.height, self.width))
+        return np.stack(out)
 
     def hull(self, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
         """Per pixel and channel, the least and the greatest value images ``start`` to ``stop - 1``
