@@ -67,6 +67,18 @@ def predicted(logits: torch.Tensor) -> torch.Tensor:
     return torch.where(torch.isfinite(logits).all(1), logits.argmax(1), -1)
 
 
+def class_margins(logits: torch.Tensor, c: int):
+    """``y_c - max_{j != c} y_j`` per row of ``logits`` (B, C) as float64 NumPy; negative, strictly,
+    wherever ``c`` is not the predicted class (a tie lost, a NaN or infinite logit)."""
+    import numpy as np
+
+    others = logits.clone()
+    others[:, c] = -torch.inf
+    margin = (logits[:, c] - others.max(1).values).double().numpy()
+    wrong = np.minimum(np.nan_to_num(margin, nan=-np.inf), -np.finfo(np.float64).tiny)
+    return np.where(predicted(logits).numpy() == c, margin, wrong)
+
+
 def non_finite(tensors: dict[str, torch.Tensor]) -> list[str]:
     """The names of the floating-point tensors holding a NaN or an infinity."""
     return [k for k, v in tensors.items() if v.is_floating_point() and not torch.isfinite(v).all()]

@@ -43,7 +43,7 @@ from mrcert.core.methods.base import (
     SceneRender,
     WholeInterval,
 )
-from mrcert.core.models import predicted
+from mrcert.core.models import class_margins, predicted
 from mrcert.core.verification.image_bounds import image_boxes
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import MrcertError
@@ -159,12 +159,7 @@ class _Run:
             out.append(self.base.model(images.to(self.base.device)).float().cpu())
         return torch.cat(out)
 
-    def margins(self, logits: torch.Tensor, c: int) -> np.ndarray:
-        others = logits.clone()
-        others[:, c] = -torch.inf
-        margin = (logits[:, c] - others.max(1).values).double().numpy()
-        wrong = np.minimum(np.nan_to_num(margin, nan=-np.inf), -np.finfo(np.float64).tiny)  # negative, strictly
-        return np.where(predicted(logits).numpy() == c, margin, wrong)
+    margins = staticmethod(class_margins)
 
     def result(self) -> Certificate:
         a = self.m.half_width

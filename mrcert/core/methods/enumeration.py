@@ -47,7 +47,7 @@ from mrcert.core.methods.base import (
     SceneRender,
     WholeInterval,
 )
-from mrcert.core.models import predicted
+from mrcert.core.models import class_margins, predicted
 from mrcert.core.verification.events import TRANSLATIONS, Enumeration, enumerate_images
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import ConfigError, MrcertError
@@ -145,14 +145,7 @@ class _Run:
         self.classified += len(images)
         return torch.cat(out)
 
-    @staticmethod
-    def margins(logits: torch.Tensor, c: int) -> np.ndarray:
-        """``y_c - max_{j != c} y_j`` per row; negative, strictly, where ``c`` is not predicted."""
-        others = logits.clone()
-        others[:, c] = -torch.inf
-        margin = (logits[:, c] - others.max(1).values).double().numpy()
-        wrong = np.minimum(np.nan_to_num(margin, nan=-np.inf), -np.finfo(np.float64).tiny)
-        return np.where(predicted(logits).numpy() == c, margin, wrong)
+    margins = staticmethod(class_margins)
 
     def alone(self, pose: float, c: int) -> float:
         """The margin at ``pose``, rendered and classified on its own."""
