@@ -30,7 +30,6 @@ a distribution. Translations only (``tx``, ``ty``, ``tz``).
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -124,7 +123,6 @@ class _Run:
 
     def __init__(self, verifier: EnumerationVerifier, render):
         self.m, self.base, self.network, self.render = verifier.method, verifier.base, verifier.network, render
-        self.start = time.perf_counter()
         self.classified = 0
         self.bounded = 0
         self.i = axis_index(self.m.axis)
