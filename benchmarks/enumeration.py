@@ -5,8 +5,9 @@ half-width on ``--axis``: the seconds to enumerate every image the interval rend
 located in the renderer's arithmetic, images changed pixel by pixel) and to materialise them all,
 beside the reference measured in the same run: rendering each of those images by projecting the
 whole crop at its first pose (the brute force). Then the seconds per image to classify them with
-the small CNN (random weights: the work does not depend on them), which is what deciding an
-interval image by image costs. Medians over repeats.
+the small CNN (random weights: the work does not depend on them), each image whole (the
+reference) and incrementally, each from the one before it where its pixels changed (what
+``method=enumeration`` does; the logits checked to agree). Medians over repeats.
 Usage: python benchmarks/enumeration.py [--threads 2] [--axis tz] [--widths 0.001,0.01] [--repeats 3]
 """
 
@@ -53,7 +54,8 @@ def measure(width: float, args, cfg, model, device) -> None:
     import torch
 
     from mrcert.core.axes import axis_index
-    from mrcert.core.methods.enumeration import ImageEnumeration
+    from mrcert.core.methods.base import BaseClassifier
+    from mrcert.core.methods.enumeration import ImageEnumeration, _Run
     from mrcert.core.projection import project
     from mrcert.core.verification.events import enumerate_images
     from mrcert.data.sources import load
@@ -80,13 +82,23 @@ def measure(width: float, args, cfg, model, device) -> None:
 
     def classify():
         with torch.inference_mode():
-            for s in range(0, len(images), 256):
-                model(torch.from_numpy(images[s : s + 256]).to(device))
+            return torch.cat([model(torch.from_numpy(images[s : s + 256]).to(device)).float().cpu()
+                              for s in range(0, len(images), 256)])  # fmt: skip
+
+    method = ImageEnumeration(args.axis, width)
+    run = _Run(method.certifier(BaseClassifier(model, 20, device=device)), sample.renderer())
+
+    def incremental():
+        return run.lanes(e, [(0, len(e))])[0]
 
     assert torch.equal(brute_force(), torch.from_numpy(images)), "the enumeration and the renderer differ"
-    times = {"enumerate and materialise": [], "reference: render each image": [], "classify every image": []}
+    whole, changed = classify(), incremental()
+    scale = float(whole.abs().max())
+    assert (whole - changed).abs().max() <= 1e-5 * max(1.0, scale), "incremental logits differ from the forward pass"
+    times = {"enumerate and materialise": [], "reference: render each image": [], "reference: classify each image": [],
+             "classify incrementally": []}  # fmt: skip
     for _ in range(args.repeats):
-        for name, step in zip(times, (enumerate_all, brute_force, classify), strict=True):
+        for name, step in zip(times, (enumerate_all, brute_force, classify, incremental), strict=True):
             start = time.perf_counter()
             step()
             times[name].append(time.perf_counter() - start)
@@ -96,6 +108,8 @@ def measure(width: float, args, cfg, model, device) -> None:
         print(f"  {name:32s} {value:8.3f} s   ({1e3 * value / len(e):.3f} ms per image)")
     ratio = med["reference: render each image"] / med["enumerate and materialise"]
     print(f"  rendering / enumeration: {ratio:.1f}x")
+    ratio = med["reference: classify each image"] / med["classify incrementally"]
+    print(f"  classifying each image / incrementally: {ratio:.1f}x")
 
 
 if __name__ == "__main__":

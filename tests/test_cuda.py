@@ -165,3 +165,35 @@ def test_bound_propagation_on_the_gpu_gives_the_cpu_bounds():
     cpu = BoundNetwork(model).margins(low, high, 0, "crown", upto=np.inf)
     gpu = BoundNetwork(model.cuda()).margins(low.cuda(), high.cuda(), 0, "crown", upto=np.inf).cpu()
     assert torch.allclose(cpu, gpu, rtol=1e-9, atol=1e-9)
+
+
+def test_cuda_enumeration_classifies_incrementally_as_the_cpu_classifies_each_image():
+    """Image enumeration on a GPU: every image of a tz interval classified incrementally there has
+    the logits the CPU's forward pass gives it (to float rounding), and the method's answer,
+    margin and images equal the CPU's."""
+    from mrcert.core.methods.base import BaseClassifier
+    from mrcert.core.methods.enumeration import ImageEnumeration, _Run
+    from mrcert.core.models import SmallCNN
+    from tests.test_enumeration import REQUEST, sample_for
+    from tests.test_incremental import randomised
+
+    sample = sample_for("tz", 0.003)
+    model = randomised(SmallCNN(3, width=8), 5)
+    answers = []
+    for device in ("cpu", "cuda"):
+        method = ImageEnumeration("tz", 0.003)
+        certifier = method.certifier(BaseClassifier(model.to(device), 3, batch_size=64, device=device))
+        answers.append(certifier.certify_sample(sample.renderer(), REQUEST, torch.Generator()))
+        run = _Run(certifier, sample.renderer())
+        if device == "cuda":
+            points, colors, rank = sample.cloud_for(run.motions([-0.003, 0.003]))
+            from mrcert.core.verification.events import enumerate_images
+
+            e = enumerate_images(points, colors, rank, PAPER_K, 90, 160, sample.background, "tz", -0.003, 0.003)
+            logits = run.lanes(e, [(0, len(e))])[0]
+            with torch.no_grad():
+                whole = model.cpu()(torch.from_numpy(e.images(0, len(e))))
+            assert (logits - whole).abs().max() <= 1e-4 * max(1.0, float(whole.abs().max()))
+    cpu, gpu = answers
+    assert cpu.details["outcome"] == gpu.details["outcome"] and cpu.details["images"] == gpu.details["images"]
+    assert cpu.margin == pytest.approx(gpu.margin, abs=1e-4)

@@ -126,6 +126,26 @@ def test_depths_a_unit_in_the_last_place_apart_are_recorded_as_a_pixel_rounding_
     assert shown == {(0.0, 0.0, 0.0), (1.0, 0.5, 0.25)}  # rounding does hand the pixel over
 
 
+def test_depths_two_spacings_apart_never_tie_and_are_not_recorded():
+    """Depths 1.5 and two floats above it: ``fl(Z - t)`` of the two never coincide (each rounds by
+    at most half a spacing), so the nearer point shows at every sampled pose and no record is made;
+    one spacing apart they are recorded."""
+    near = 1.5
+    for steps, recorded in ((2, False), (1, True)):
+        far = near
+        for _ in range(steps):
+            far = np.nextafter(far, 2.0)
+        points = np.column_stack([[0.0, 0.0], [0.0, 0.0], [near, far]])
+        colors = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.25]], np.float32)
+        rank = np.array([1, 0])
+        e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 0.5, "tz", -0.01, 0.01)
+        assert (len(e.alternates(0, len(e))) > 0) == recorded
+        if not recorded:
+            for t in np.random.default_rng(1).uniform(-0.01, 0.01, 3000):
+                shown = zbuffer(points, colors, rank, SMALL_K, 2, float(t), SMALL_H, SMALL_W, 0.5)[:, 6, 8]
+                assert shown.tolist() == [0.0, 0.0, 0.0]
+
+
 def sample_for(axis: str, half_width: float) -> TestSample:
     points, colors = occluding_scene(0)
     bound = ImageEnumeration(axis, half_width).crop_bound(1.0)

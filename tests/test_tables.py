@@ -627,11 +627,19 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     budget = ["method.max_pieces=2", "method.samples=3"]
     bp_run = run(tmp_path, [*bound, *budget, "model.trained_for={name:camera_motion}"], "bp")
     run(tmp_path, [*bound, *budget, "model.trained_for={name:pixelwise,sigma:0.25}"], "bp-noise")
+    exact = [*motion, *shared, "task=certify", "task.skip=5", "method=enumeration", "method.half_width=0.001"]
+    run(tmp_path, [*exact, "model.trained_for={name:camera_motion}"], "en")
+    run(tmp_path, [*exact, "model.trained_for={name:pixelwise,sigma:0.25}"], "en-noise")
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     src = ExperimentCells(RunIndex.load("mrcert"), "quick", overrides=(*shared, "method.certify.frames=3"))
-    df = side_by_side.runs(src, deterministic=("method=bound_propagation", *budget))
-    # The deterministic method's rows: the share verified with the right class, on the same images.
-    for row, name in zip(df.iloc[3:].itertuples(), ("bp", "bp-noise"), strict=True):
+    methods = (
+        (("method=bound_propagation", *budget), side_by_side.DETERMINISTIC[0][1], None),
+        side_by_side.DETERMINISTIC[1],
+    )
+    df = side_by_side.runs(src, deterministic=methods)
+    # The deterministic methods' rows: the share verified with the right class, on the same images.
+    assert list(df["method"].iloc[3:]) == ["bound propagation (crown)"] * 2 + ["image enumeration (exact)"] * 2
+    for row, name in zip(df.iloc[3:].itertuples(), ("bp", "bp-noise", "en", "en-noise"), strict=True):
         log = read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"])
         assert set(log.idx) == set(row.log.idx) and row.kind == "deterministic"
         verified = (log.outcome == "verified") & (log.correct == 1)
@@ -639,7 +647,7 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
         assert df.loc[row.Index, "left by the bound"] == (log.outcome == "unknown").sum()
         assert (log.n0 == 0).all() and (log.n == 0).all()  # it classifies no smoothing samples
     assert bp_run["mean_samples"] == 0
-    assert list(df["base model"].iloc[3:]) == ["motion-augmented model", "pixel-noise model (sigma 0.25)"]
+    assert list(df["base model"].iloc[3:]) == ["motion-augmented model", "pixel-noise model (sigma 0.25)"] * 2
     df = df.iloc[:3]
     cms, noise, pws = (
         read_log(tmp_path / "runs" / name / "certify.tsv", ["idx"]) for name in ("cms", "cms-noise", "pws")
@@ -687,10 +695,11 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
 
     section = side_by_side_section(src, tmp_path / "page.md")
     recorded = [r for r in src.provenance if r["table"] == "side_by_side"]
-    assert {r["runs"] for r in recorded} == set(df["run_id"]) and {r["model runs"] for r in recorded} == set(
-        df["train_run"]
-    )
-    assert set(src.cited_runs()) == {*df["run_id"], cms_train_id, pws_train_id}
+    paged = side_by_side.runs(src)  # the page's own methods: the enumeration runs beside the smoothing ones
+    assert set(df["run_id"]) < set(paged["run_id"])
+    assert {r["runs"] for r in recorded} == set(paged["run_id"])
+    assert {r["model runs"] for r in recorded} == set(paged["train_run"])
+    assert set(src.cited_runs()) == {*paged["run_id"], cms_train_id, pws_train_id}
     assert section["machine"] == machine()
     # The pixel-noise model's caps, as its train run measured them, stated beside the guarantees.
     assert section["caps"] == {"clean": f"{pws_train['test_acc_clean']:.3f}", "noisy": f"{pws_train['test_acc']:.3f}"}

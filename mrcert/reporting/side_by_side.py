@@ -6,9 +6,10 @@ frames), all restricted to that run's test images: the fixed-n CERTIFY run of
 ``experiment=reproduce_quick`` on the same axis and architecture, by camera motion smoothing,
 once with its own motion-augmented model and once with the pixel-wise run's pixel-noise model
 (``model.trained_for``: both methods on one base classifier, as the PwS authors compared them);
-then the pixel-wise run; then the certify runs of the deterministic method on the same interval
-and images (``method=bound_propagation`` under ``experiment=reproduce_quick``, with each of the two
-base classifiers), where they have finished. Each row gives the certified accuracy at the motion radius ``a``
+then the pixel-wise run; then the certify runs of the deterministic methods on the same interval
+and images (``method=bound_propagation`` and, on translations, ``method=enumeration`` under
+``experiment=reproduce_quick``, with each of the two base classifiers), where they have finished.
+Each row gives the certified accuracy at the motion radius ``a``
 (pixel-wise smoothing certifies the whole interval or nothing; motion smoothing certifies
 ``|motion| < R``) with its exact (Clopper-Pearson) 95% interval over the images, the base
 classifier's accuracy on the clean test images and, for a pixel-noise model, on noisy ones (its
@@ -84,15 +85,21 @@ def _certified(log: pd.DataFrame, radius: float) -> dict[str, float]:
     return {"certified accuracy": certify_log.certified_accuracy(log, radius), "low": low, "high": high}
 
 
-DETERMINISTIC = ("method=bound_propagation",)
-"""The overrides that pick the deterministic method's certify runs beside the smoothing methods'."""
+DETERMINISTIC = (
+    (("method=bound_propagation",), lambda c: f"bound propagation ({c.method.relaxation})", None),
+    (("method=enumeration",), lambda c: "image enumeration (exact)", ("tx", "ty", "tz")),
+)
+"""The deterministic methods beside the smoothing methods: the overrides that pick each one's
+certify runs, its label on the page, and the axes it certifies (None: every axis)."""
 
 
 def _deterministic(log: pd.DataFrame) -> dict[str, float]:
-    """Per image: camera poses projected, forward passes (poses classified) and seconds."""
+    """Per image: camera poses projected, forward passes (poses classified; for image enumeration
+    the images it classified, most of them incrementally) and seconds."""
+    passes = log["forward_passes"] if "forward_passes" in log else log["classified"]  # enumeration: images
     return {
         "poses projected / image": float(log["projected"].mean()),
-        "forward passes / image": float(log["forward_passes"].mean()),
+        "forward passes / image": float(passes.mean()),
         "seconds / image": float(log["seconds"].mean()),
         "left by the bound": float((log["outcome"] == "unknown").sum()),
         "left by the classes": float((log["outcome"] == "falsified").sum()),
@@ -123,9 +130,7 @@ def _beside(src: ExperimentCells, overrides, images: set, fixed: dict, noisy: bo
     return [fixed | row]
 
 
-def runs(
-    src: ExperimentCells, experiment: str = EXPERIMENT, deterministic: tuple[str, ...] = DETERMINISTIC
-) -> pd.DataFrame:
+def runs(src: ExperimentCells, experiment: str = EXPERIMENT, deterministic: tuple = DETERMINISTIC) -> pd.DataFrame:
     """Per finished pixel-wise run of the experiment, on its images: motion smoothing on the
     motion-augmented model and on the pixel-noise model (each where its run has finished), then
     pixel-wise smoothing; empty when no pixel-wise run has finished."""
@@ -188,14 +193,16 @@ def runs(
                 "log": log,
             }
         )
-        for trained, extra, noisy in own:  # the deterministic method on each base classifier
-            chosen = extra or (f"model.trained_for={{name:{motion_method}}}",)
-            overrides = (f"task.skip={int(cfg.task.skip)}", *deterministic, f"method.half_width={half_width}", *chosen)
-            rows += _beside(
-                src, (*where, *overrides), images, common | {"kind": BOUND_KIND, "base model": trained}, noisy,
-                lambda c: f"bound propagation ({c.method.relaxation})",
-                lambda same, c: _deterministic(same),
-            )  # fmt: skip
+        for method, label, axes in deterministic:  # each deterministic method on each base classifier
+            if axes is not None and axis not in axes:
+                continue
+            for trained, extra, noisy in own:
+                chosen = extra or (f"model.trained_for={{name:{motion_method}}}",)
+                overrides = (f"task.skip={int(cfg.task.skip)}", *method, f"method.half_width={half_width}", *chosen)
+                rows += _beside(
+                    src, (*where, *overrides), images, common | {"kind": BOUND_KIND, "base model": trained}, noisy,
+                    label, lambda same, c: _deterministic(same),
+                )  # fmt: skip
     return pd.DataFrame(rows)
 
 
@@ -293,8 +300,9 @@ def figure(df: pd.DataFrame):
             label = f"{method}, {model}, whole interval" + (f", {int(frames[0])} frames" if len(frames) == 1 else "")
             if group["frames"].notna().all():  # pixel-wise smoothing
                 style = {"marker": "o", "markersize": 6}
-            else:  # bound propagation: hollow, so that a circle on the same point shows through
-                style = {"marker": "s", "markersize": 11, "fillstyle": "none", "markeredgewidth": 1.5}
+            else:  # the deterministic methods: hollow, so that a circle on the same point shows through
+                marker, size = ("D", 14) if method.startswith("image enumeration") else ("s", 11)
+                style = {"marker": marker, "markersize": size, "fillstyle": "none", "markeredgewidth": 1.5}
             ax.plot(
                 group["half_width"],
                 group["certified accuracy"],

@@ -7,14 +7,18 @@ interval is therefore decided by those images alone, and this method decides it 
 
 * the image at the test pose gives the class ``c``; a few images spread over the interval are
   classified first (a falsifying pose is usually found there);
-* a run of consecutive images gets its exact hull -- per pixel and channel, the least and the
-  greatest value the run's images take -- and bound propagation
-  (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over the hull,
-  hence over every image of the run; a run it does not prove is halved;
-* a run of at most ``run_images`` images is classified image by image, in batches; an image whose
-  margin is within float rounding of 0 is classified again on its own; where rounding may hand a
-  pixel to a point of near-equal depth (tz), the image's hull (which holds those colours) is
-  bounded, and where that fails every image the records allow is classified too.
+* every image is then classified incrementally
+  (:mod:`mrcert.core.verification.incremental`): each from the one before it, recomputing only
+  what its changed pixels reach, up to :data:`LANES` pieces of the interval at once; a network
+  whose graph it cannot follow is classified image by image, in batches. A margin within float
+  rounding of 0 is classified again on the image alone;
+* where rounding may hand a pixel to a point of near-equal depth (tz), every image those records
+  allow is decided too: by an interval bound over the few pixels, else by classifying each
+  (with an affine tail, as the nominal logits plus a change kept near the pixels);
+* optionally (``run_images`` below the number of images), a longer run first gets its exact hull
+  -- per pixel and channel, the least and the greatest value the run's images take -- and bound
+  propagation (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over
+  it, hence over every image of the run; a run it does not prove is halved.
 
 Outcomes: **verified** (every image of the interval is classified ``c``: the radius is ``a``),
 **falsified** (an image classified otherwise, with the first float pose that renders it logged
@@ -23,13 +27,15 @@ when the budget (``max_bounds`` runs bounded) is spent or an image rounding may 
 classified otherwise (or there are more than :data:`VARIANTS` of one image).
 
 Guarantee: verified means ``h(O(V, alpha)) = c`` for every float64 ``|alpha| <= a`` on the axis,
-where ``h`` is the base classifier as it classifies one image (the hulls' bounds hold for it in
-exact arithmetic, the classified images are its own float32 answers); nothing is assumed about
-a distribution. Translations only (``tx``, ``ty``, ``tz``).
+where ``h`` is the base classifier as it classifies one image (the bounds hold for it in exact
+arithmetic; the incremental logits are its float32 forward pass up to a different order of
+summation, far below the rounding margin within which an image is classified alone); nothing is
+assumed about a distribution. Translations only (``tx``, ``ty``, ``tz``).
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -48,6 +54,7 @@ from mrcert.core.methods.base import (
 )
 from mrcert.core.models import class_margins, predicted
 from mrcert.core.verification.events import TRANSLATIONS, Enumeration, enumerate_images
+from mrcert.core.verification.incremental import IncrementalNetwork
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import ConfigError, MrcertError
 
@@ -56,6 +63,12 @@ SPREAD = 33
 
 VARIANTS = 64
 """The most images rounding may render beside an enumerated one that are classified (then: unknown)."""
+
+LANES = 32
+"""Pieces of the interval followed at once by the incremental classifier."""
+
+LANE_IMAGES = 128
+"""About the fewest images of a piece (its first image is classified in full)."""
 
 ROUNDING = 1e-4
 """A batched margin below this (relative to the logits' scale) is checked on the image alone."""
@@ -68,10 +81,11 @@ class ImageEnumeration(WholeInterval, Method):
     axis: str
     half_width: float
     relaxation: str = "interval"
-    run_images: int = 512
+    run_images: int = 1048576
     max_bounds: int = 4096
     batch: int = 256
     crown_neurons: int = 2048
+    incremental: bool = True
 
     log_columns: ClassVar[tuple[str, ...]] = (
         "outcome", "events", "images", "classified", "runs_bounded", "counterexample",
@@ -88,6 +102,7 @@ class ImageEnumeration(WholeInterval, Method):
         return cls(
             cls.interval_axis(motion, "enumeration"), float(method.half_width), str(method.relaxation),
             int(method.run_images), int(method.max_bounds), int(method.batch), int(method.crown_neurons),
+            bool(method.get("incremental", True)),
         )  # fmt: skip
 
     @property
@@ -110,6 +125,7 @@ class EnumerationVerifier:
     def __init__(self, method: ImageEnumeration, base: BaseClassifier):
         self.method, self.base = method, base
         self.network = BoundNetwork(base.model, method.crown_neurons)
+        self.incremental = IncrementalNetwork.of(base.model) if method.incremental else None
 
     def certify_sample(self, render, request: CertifyRequest, generator: torch.Generator) -> Certificate:
         """Verify or falsify one test sample (module docstring); draws nothing."""
@@ -123,6 +139,8 @@ class _Run:
 
     def __init__(self, verifier: EnumerationVerifier, render):
         self.m, self.base, self.network, self.render = verifier.method, verifier.base, verifier.network, render
+        self.incremental = verifier.incremental
+        self.undecided = False  # an image rounding may render, classified otherwise (incremental pass)
         self.classified = 0
         self.bounded = 0
         self.i = axis_index(self.m.axis)
@@ -175,7 +193,7 @@ class _Run:
         while todo or short:
             if short and (not todo or sum(t - s for s, t in short) >= self.m.batch):
                 found, margin = self.classify_runs(e, short, c)
-                undecided |= not self.variants_hold(e, short, c)
+                undecided |= self.undecided if self.incremental is not None else not self.variants_hold(e, short, c)
                 short = []
                 if found is not None:
                     return self.certificate(c, "falsified", found[1], e, found[0])
@@ -230,10 +248,215 @@ class _Run:
 
     def classify_runs(self, e: Enumeration, runs: list[tuple[int, int]], c: int):
         """Every image of the ``runs`` classified: a falsifying pose (or None), and the least margin."""
-        images = np.concatenate([e.images(s, t) for s, t in runs])
         indices = np.concatenate([np.arange(s, t) for s, t in runs])
-        margins = self.margins(self.classify(images), c)
-        return self.decide(e, indices, margins, c)
+        if self.incremental is not None:
+            logits = self.incremental_logits(e, runs, c)
+        else:
+            logits = self.classify(np.concatenate([e.images(s, t) for s, t in runs]))
+        return self.decide(e, indices, self.margins(logits, c), c)
+
+    def incremental_logits(self, e: Enumeration, runs: list[tuple[int, int]], c: int) -> torch.Tensor:
+        """The logits of every image of the ``runs``, in order: the stretches without fragile
+        records many at a time (:meth:`lanes`), the others one image after the other with their
+        variants (:meth:`along`)."""
+        cover = np.zeros(len(e) + 1, np.int64)
+        if len(e.fragile):
+            np.add.at(cover, e.fragile[:, 0], 1)
+            np.add.at(cover, e.fragile[:, 1], -1)
+        fragile = np.cumsum(cover)[:-1] > 0
+        segments = []
+        for s, t in runs:
+            cuts = np.r_[s, s + 1 + np.nonzero(fragile[s + 1 : t] != fragile[s : t - 1])[0], t]
+            segments += [(int(a), int(b), bool(fragile[a])) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+        net = self.incremental
+        net.start(torch.from_numpy(e.images(0, 1)))
+        if not net.affine():  # the variants need the whole network at each image: one after the other
+            plain = self.lanes(e, [(a, b) for a, b, f in segments if not f])
+            out, j = [], 0
+            for a, b, f in segments:
+                if f:
+                    out.append(self.along(e, a, b, c))
+                else:
+                    out.append(plain[j])
+                    j += 1
+            return torch.cat(out)
+        logits = self.lanes(e, [(a, b) for a, b, _ in segments])
+        for (a, b, f), nominal in zip(segments, logits, strict=True):
+            if f and not self.undecided and not self.variants_along(e, a, b, nominal, c):
+                self.undecided = True
+        return torch.cat(logits)
+
+    @torch.inference_mode()
+    def variants_along(self, e: Enumeration, a: int, b: int, nominal: torch.Tensor, c: int) -> bool:
+        """Whether every image the fragile records of images ``a`` to ``b - 1`` allow is classified
+        ``c``, given the nominal images' logits: each variant's logits are the nominal ones plus a
+        change that depends on the pixels near the fragile ones alone (the tail is affine), so the
+        incremental network follows only the changes that reach what that change read."""
+        net = self.incremental
+        table = torch.from_numpy(e.table())
+        records = e.alternates(a, b)
+        cuts = np.unique(np.r_[a, b, np.clip(records[:, 0], a, b), np.clip(records[:, 1], a, b)])
+        spans = np.searchsorted(e.change_image, np.arange(a, b + 1), side="left")
+        for u, v in zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True):
+            here = records[(records[:, 0] <= u) & (records[:, 1] > u)]
+            if not len(here):
+                continue
+            net.start(torch.from_numpy(e.images(u, u + 1)))
+            pixels = np.unique(here[:, 2])
+            # a record closes where its pixel changes, so the pixels keep their colour over [u, v)
+            colours = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu().clone()
+            options = [[table[q] for _, _, p, q in here.tolist() if p == pixel] for pixel in pixels.tolist()]
+            low, high = colours.clone(), colours.clone()
+            for j, allowed in enumerate(options):
+                for colour in allowed:
+                    low[:, j], high[:, j] = torch.minimum(low[:, j], colour), torch.maximum(high[:, j], colour)
+            variants = []  # every combination of the colours the records allow (none: too many to classify)
+            if int(np.prod([len(o) + 1 for o in options], dtype=float)) - 1 <= VARIANTS:
+                for combo in itertools.product(*([None, *o] for o in options)):
+                    which = [j for j, colour in enumerate(combo) if colour is not None]
+                    if which:
+                        variants.append((pixels[which], torch.stack([combo[j] for j in which], 1)))
+            # What the bound and the variants read, while the image is whole: the same windows at
+            # every later image, so only the changes inside what they depend on are followed.
+            net.offsets(pixels, low, high, c)
+            for where, values in variants:
+                net.delta(where, values)
+            reach = net.reach()
+            for k in range(u, v):
+                if k > u:
+                    lo, hi = spans[k - a], spans[k - a + 1]
+                    changed = e.change_pixel[lo:hi]
+                    rows, cols = changed // e.width, changed % e.width
+                    if ((rows >= reach[0]) & (rows < reach[1]) & (cols >= reach[2]) & (cols < reach[3])).any():
+                        net.step(changed, table[e.change_winner[lo:hi]].T)
+                logits = nominal[k - a].to(net.values[0].device)
+                scale = ROUNDING * max(1.0, float(logits.abs().max()))
+                least = logits[c] - logits + net.offsets(pixels, low, high, c)
+                least[c] = torch.inf
+                if float(least.min()) <= scale:
+                    if not variants:
+                        return False
+                    for where, values in variants:
+                        moved = (logits + net.delta(where, values)[0]).float().cpu()[None]
+                        self.classified += 1
+                        if float(self.margins(moved, c)[0]) <= scale and self.variant_alone(e, k, where, values, c) < 0:
+                            return False
+        return True
+
+    def variant_alone(self, e: Enumeration, k: int, pixels: np.ndarray, values: torch.Tensor, c: int) -> float:
+        """The margin of image ``k`` changed at ``pixels`` to ``values``, classified on its own."""
+        image = torch.from_numpy(e.images(k, k + 1))
+        image.view(image.shape[1], -1)[:, torch.from_numpy(pixels)] = values.to(image.dtype)
+        with torch.inference_mode():
+            return float(self.margins(self.base.model(image.to(self.base.device)).float().cpu(), c)[0])
+
+    @torch.inference_mode()
+    def lanes(self, e: Enumeration, stretches: list[tuple[int, int]]) -> list[torch.Tensor]:
+        """The logits of each stretch's images (one tensor per stretch): the stretches cut into
+        up to :data:`LANES` pieces of about equal changes, followed at once,
+        each step changing one pixel of every piece (:meth:`IncrementalNetwork.lanes`)."""
+        total = sum(b - a for a, b in stretches)
+        if not total:
+            return []
+        # pieces of about equal numbers of changed pixels (the steps they take), cut at images
+        changes = np.diff(np.searchsorted(e.change_image, np.arange(len(e) + 1), side="left"))
+        count = max(1, min(LANES, total // LANE_IMAGES))
+        share = sum(int(changes[a:b].sum()) for a, b in stretches) / count
+        pieces = []
+        for a, b in stretches:
+            ends = np.cumsum(changes[a:b])
+            cuts = np.unique(np.r_[0, np.searchsorted(ends, np.arange(share, ends[-1], share)), b - a])
+            pieces += [(a + int(u), a + int(v)) for u, v in zip(cuts[:-1], cuts[1:], strict=True) if v > u]
+        table = torch.from_numpy(e.table())
+        logits: list[torch.Tensor] = []
+        for g in range(0, len(pieces), LANES):
+            group = pieces[g : g + LANES]
+            firsts = torch.from_numpy(np.concatenate([e.images(a, a + 1) for a, _ in group]))
+            spans = [np.searchsorted(e.change_image, [a + 1, b], side="left") for a, b in group]
+            steps = max(int(hi - lo) for lo, hi in spans)
+            pixels = np.full((len(group), steps), -1, np.int64)
+            colours = torch.zeros(len(group), steps, table.shape[1], dtype=table.dtype)
+            shown = np.zeros((len(group), steps), bool)
+            for r, (lo, hi) in enumerate(spans):
+                n = int(hi - lo)
+                pixels[r, :n] = e.change_pixel[lo:hi]
+                colours[r, :n] = table[e.change_winner[lo:hi]]
+                images = e.change_image[lo:hi]
+                shown[r, :n] = np.r_[images[1:] != images[:-1], True] if n else shown[r, :n]
+            rows = self.incremental.lanes(firsts, pixels, colours, shown)
+            at = 0
+            for a, b in group:
+                logits.append(rows[at : at + b - a])
+                at += b - a
+        self.classified += total
+        out, j = [], 0
+        for a, b in stretches:  # the pieces back into their stretches
+            parts = []
+            while sum(len(p) for p in parts) < b - a:
+                parts.append(logits[j])
+                j += 1
+            out.append(torch.cat(parts))
+        return out
+
+    @torch.inference_mode()
+    def along(self, e: Enumeration, s: int, t: int, c: int) -> torch.Tensor:
+        """The logits of images ``s`` to ``t - 1``, each recomputed from the one before it where
+        its pixels changed (:mod:`mrcert.core.verification.incremental`); an image with fragile
+        records has its variants decided too (:meth:`variants_hold_here`)."""
+        net = self.incremental
+        table = torch.from_numpy(e.table())
+        bounds = np.searchsorted(e.change_image, np.arange(s, t + 1), side="left")
+        records = e.alternates(s, t)
+        out = torch.empty(t - s, self.base.num_classes)
+        for k in range(s, t):
+            lo, hi = bounds[k - s], bounds[k - s + 1]
+            if k == s:
+                logits = net.start(torch.from_numpy(e.images(s, s + 1)))
+            elif hi > lo:
+                logits = net.step(e.change_pixel[lo:hi], table[e.change_winner[lo:hi]].T)
+            out[k - s] = logits.float().cpu()[0]
+            if len(records) and not self.undecided:
+                here = records[(records[:, 0] <= k) & (records[:, 1] > k)]
+                if len(here) and not self.variants_hold_here(here, table, out[k - s], c):
+                    self.undecided = True
+        self.classified += t - s
+        return out
+
+    def variants_hold_here(self, records: np.ndarray, table: torch.Tensor, logits: torch.Tensor, c: int) -> bool:
+        """Whether every image the fragile ``records`` allow beside the current one (each of their
+        pixels its winner's colour or a record's point's) is classified ``c``: by an interval bound
+        over them all, else each classified (at most :data:`VARIANTS`)."""
+        net = self.incremental
+        pixels = np.unique(records[:, 2])
+        nominal = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu().clone()
+        options = [[table[q] for _, _, p, q in records.tolist() if p == pixel] for pixel in pixels.tolist()]
+        low, high = nominal.clone(), nominal.clone()
+        for j, colours in enumerate(options):
+            for colour in colours:
+                low[:, j] = torch.minimum(low[:, j], colour)
+                high[:, j] = torch.maximum(high[:, j], colour)
+        scale = ROUNDING * max(1.0, float(logits.abs().max()))
+        if net.bound(pixels, low, high, c) > scale:
+            return True
+        count = int(np.prod([len(o) + 1 for o in options])) - 1
+        if count > VARIANTS:
+            return False
+        for combo in itertools.product(*([None, *o] for o in options)):
+            changed = [j for j, colour in enumerate(combo) if colour is not None]
+            if not changed:
+                continue
+            colours = torch.stack([combo[j] for j in changed], 1)
+            margin = float(self.margins(net.variant(pixels[changed], colours).float().cpu(), c)[0])
+            self.classified += 1
+            if margin <= scale:  # near 0 or below: the variant classified on its own decides
+                image = net.values[0].clone()
+                flat = image.view(image.shape[1], -1)
+                flat[:, torch.from_numpy(pixels[changed])] = colours.to(image.dtype)
+                with torch.inference_mode():
+                    margin = float(self.margins(self.base.model(image.to(self.base.device)).float().cpu(), c)[0])
+                if margin < 0:
+                    return False
+        return True
 
     def decide(self, e: Enumeration, indices: np.ndarray, margins: np.ndarray, c: int):
         """Margins near 0 checked on the image alone; the first negative one's pose."""

@@ -95,6 +95,7 @@ class EnumerationConfig(MethodConfig):
     max_bounds: int = checked(at_least(1))  # runs bounded at most per image (then: unknown)
     batch: int = checked(at_least(1))  # images classified at once
     crown_neurons: int = checked(at_least(0))  # ReLU layers of at most this many neurons get backward-pass bounds
+    incremental: bool = True  # an image recomputed only where its changed pixels reach (false: in full)
 
     @staticmethod
     def relations(method: Mapping[str, Any], where: str, root: Mapping[str, Any]) -> None:

@@ -15,8 +15,8 @@ like any other.
 A sweep over the crossings in pose order keeps, per pixel, the points in it and the winner of
 the z-buffer (the nearest, the lowest rank among equal depths). On ``tx`` and ``ty`` a point's
 depth is ``Z`` itself at every pose; on ``tz`` the computed depths ``Z - t`` keep the order of the
-``Z`` (subtraction is monotone) but two depths within a few units in the last place may round
-to equal at some poses and not at others, handing the pixel to the lower rank there. The sweep
+``Z`` (subtraction is monotone) but two depths at most one float spacing apart may round to
+equal at some poses and not at others, handing the pixel to the lower rank there. The sweep
 flags every such pixel (:attr:`Enumeration.fragile`), with the colours it may take, so that
 nothing the renderer draws is missed.
 
@@ -209,7 +209,7 @@ def _before(P, rank, i, j):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width, reach):  # pragma: no cover - compiled
+def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width):  # pragma: no cover - compiled
     """The images along the interval: the first image's winners, each later image's start pose,
     per image the pixels whose winner changed (image index, pixel, new winner; -1: none), and on
     tz (``axis`` 2) the points rounding may hand a pixel to (from image, to image, pixel, point)."""
@@ -250,7 +250,7 @@ def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width, reac
     open_count = np.zeros(hw, np.int64)
     if axis == 2:
         for p in range(hw):
-            _fragile_scan(P, rank, p, head, nxt, winner, reach, 0, open_from, open_count, f_from, f_to, f_pixel,
+            _fragile_scan(P, rank, p, head, nxt, winner, lo, 0, open_from, open_count, f_from, f_to, f_pixel,
                           f_point)  # fmt: skip
     m = times.shape[0]
     j = 0
@@ -318,7 +318,7 @@ def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width, reac
                             left -= 1
                     open_from[p] = -1
                     open_count[p] = 0
-                _fragile_scan(P, rank, p, head, nxt, winner, reach, cur, open_from, open_count, f_from, f_to,
+                _fragile_scan(P, rank, p, head, nxt, winner, lo, cur, open_from, open_count, f_from, f_to,
                               f_pixel, f_point)  # fmt: skip
         j = k
     m_images = len(starts)
@@ -333,11 +333,13 @@ def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width, reac
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fragile_scan(
-    P, rank, p, head, nxt, winner, reach, image, open_from, open_count, f_from, f_to, f_pixel, f_point
+    P, rank, p, head, nxt, winner, lo, image, open_from, open_count, f_from, f_to, f_pixel, f_point
 ):  # pragma: no cover - compiled
     """Open a record for each point of pixel ``p`` that rounding may hand it to from ``image`` on:
-    deeper than the winner ``w`` by at most a few units in the last place of the computed depths
-    (which may then round to one value) and of lower rank (it then wins the tie)."""
+    of lower rank than the winner ``w`` (it then wins a tie) and deeper by at most the spacing of
+    the floats above its largest computed depth ``fl(Z_q - lo)``. Two depths further apart never
+    round to one value: if ``fl(Z_w - t) = fl(Z_q - t) = g``, each is within half the spacing
+    around ``g`` of it, so ``Z_q - Z_w`` is at most the spacing above ``g <= fl(Z_q - lo)``."""
     w = winner[p]
     if w < 0:
         return
@@ -345,7 +347,8 @@ def _fragile_scan(
     q = head[p]
     while q >= 0:
         zq = P[q, 2]
-        if zq > zw and zq - zw <= 2.0**-50 * (abs(zq) + reach) and rank[q] < rank[w]:
+        top = zq - lo
+        if zq > zw and rank[q] < rank[w] and zq - zw <= np.nextafter(top, np.inf) - top:
             f_from.append(image)
             f_to.append(-1)
             f_pixel.append(p)
@@ -501,8 +504,7 @@ def enumerate_images(
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     a = axis_index(axis)
     times, pts = _events(P, a, float(lo), float(hi), fx, fy, cx, cy, int(height), int(width))
-    reach = max(abs(float(lo)), abs(float(hi)))
     first, starts, c_image, c_pixel, c_winner, fragile = _sweep(P, ranks, a, float(lo), times, pts, fx, fy, cx, cy,
-                                                                int(height), int(width), reach)  # fmt: skip
+                                                                int(height), int(width))  # fmt: skip
     return Enumeration(axis, float(lo), float(hi), starts, first, c_image, c_pixel, c_winner, table,
                        float(background), int(height), int(width), len(times), fragile)  # fmt: skip

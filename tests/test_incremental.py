@@ -1,0 +1,261 @@
+"""Classifying an enumeration's images incrementally (each recomputed where its changed pixels
+reach): checked against the network's own forward pass on every image, one sequence at a time
+and many at once, on a plain CNN, a residual network and one with a non-linear head; the
+interval bound over a few pixels checked by sampling, and the bound it keeps across steps against
+the bound computed afresh."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from mrcert.core.methods.base import BaseClassifier
+from mrcert.core.methods.enumeration import ImageEnumeration
+from mrcert.core.models import Normalize, SmallCNN, class_margins
+from mrcert.core.verification.events import enumerate_images
+from mrcert.core.verification.incremental import IncrementalNetwork
+from mrcert.data.samples import TestSample
+from tests.conftest import PAPER_K
+from tests.test_enumeration import REQUEST, sample_for
+from tests.test_pixelwise import occluding_scene
+
+H, W = 24, 40
+K = torch.tensor([[40.0, 0.0, 20.0], [0.0, 40.0, 12.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def randomised(net: nn.Module, seed: int) -> nn.Module:
+    """``net`` behind the normaliser, its batch norms given statistics of their own, in evaluation mode."""
+    g = torch.Generator().manual_seed(seed)
+    for m in net.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.copy_(torch.rand(m.num_features, generator=g) * 0.2 - 0.1)
+            m.running_var.copy_(torch.rand(m.num_features, generator=g) + 0.5)
+            m.weight.data.copy_(torch.rand(m.num_features, generator=g) + 0.5)
+            m.bias.data.copy_(torch.rand(m.num_features, generator=g) * 0.4 - 0.2)
+    return nn.Sequential(Normalize(), net).eval()
+
+
+class Residual(nn.Module):
+    """Strided and 1x1 convolutions, a padded max pooling after a ReLU, and two residual sums."""
+
+    def __init__(self):
+        super().__init__()
+        self.stem = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.BatchNorm2d(8), nn.ReLU(), nn.MaxPool2d(3, 2, 1))
+        self.a = nn.Sequential(
+            nn.Conv2d(8, 8, 3, padding=1), nn.BatchNorm2d(8), nn.ReLU(), nn.Conv2d(8, 8, 3, padding=1)
+        )
+        self.down = nn.Conv2d(8, 16, 1, stride=2)
+        self.b = nn.Conv2d(8, 16, 3, stride=2, padding=1)
+        self.head = nn.Linear(16, 3)
+
+    def forward(self, x):
+        x = self.stem(x)
+        x = torch.relu(x + self.a(x))
+        x = torch.relu(self.down(x) + self.b(x))
+        return self.head(torch.flatten(F.adaptive_avg_pool2d(x, 1), 1))
+
+
+class MlpHead(nn.Module):
+    """A convolution, then a head that is not affine (Linear, ReLU, Linear)."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = nn.Conv2d(3, 6, 3, stride=2, padding=1)
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(6 * 12 * 20, 16), nn.ReLU(), nn.Linear(16, 4))
+
+    def forward(self, x):
+        return self.head(torch.relu(self.conv(x)))
+
+
+def models():
+    torch.manual_seed(0)
+    return {
+        "small_cnn": randomised(SmallCNN(5, width=6), 1),
+        "residual": randomised(Residual(), 2),
+        "mlp_head": randomised(MlpHead(), 3),
+    }
+
+
+def enumeration(seed: int = 0, a: float = 0.02, scale: int = 1):
+    """A random cloud along tz; ``scale`` times the image size (and focal length)."""
+    rng = np.random.default_rng(seed)
+    n = 3000 * scale * scale
+    z = rng.uniform(0.8, 3.0, n)
+    xy = rng.uniform(-1, 1, (n, 2)) * np.array([0.55, 0.35]) * z[:, None]
+    colors = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    k = K.clone()
+    k[:2] *= scale
+    return enumerate_images(np.column_stack([xy, z]), colors, None, k, H * scale, W * scale, 0.0, "tz", -a, a)
+
+
+def full(model, e):
+    with torch.no_grad():
+        return model(torch.from_numpy(e.images(0, len(e))))
+
+
+@pytest.mark.parametrize("name", ["small_cnn", "residual", "mlp_head"])
+def test_each_image_is_classified_as_the_network_classifies_it_whole_one_sequence_and_many(name):
+    model = models()[name]
+    e = enumeration()
+    assert len(e) > 150
+    net = IncrementalNetwork.of(model)
+    assert net is not None
+    expected = full(model, e)
+    tol = 1e-5 * max(1.0, float(expected.abs().max()))
+    table = torch.from_numpy(e.table())
+    bounds = np.searchsorted(e.change_image, np.arange(len(e) + 1), side="left")
+    with torch.inference_mode():
+        rows = [net.start(torch.from_numpy(e.images(0, 1))).clone()]
+        for k in range(1, len(e)):
+            lo, hi = bounds[k], bounds[k + 1]
+            rows.append(net.step(e.change_pixel[lo:hi], table[e.change_winner[lo:hi]].T).clone())
+    assert (torch.cat(rows) - expected).abs().max() <= tol
+    # many sequences at once: six pieces, one changed pixel per step each
+    cuts = np.linspace(0, len(e), 7).round().astype(int)
+    spans = [np.searchsorted(e.change_image, [a + 1, b], side="left") for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    steps = max(int(hi - lo) for lo, hi in spans)
+    pixels = np.full((6, steps), -1)
+    colours = torch.zeros(6, steps, 3)
+    shown = np.zeros((6, steps), bool)
+    for r, (lo, hi) in enumerate(spans):
+        n = int(hi - lo)
+        pixels[r, :n] = e.change_pixel[lo:hi]
+        colours[r, :n] = table[e.change_winner[lo:hi]]
+        images = e.change_image[lo:hi]
+        shown[r, :n] = np.r_[images[1:] != images[:-1], True]
+    firsts = torch.from_numpy(np.concatenate([e.images(a, a + 1) for a in cuts[:-1]]))
+    lanes = net.lanes(firsts, pixels, colours, shown)
+    assert lanes.shape == expected.shape and (lanes - expected).abs().max() <= tol
+
+
+def margin(model, image, c):
+    with torch.no_grad():
+        return class_margins(model(image), c)
+
+
+@pytest.mark.parametrize("name", ["small_cnn", "residual", "mlp_head"])
+def test_the_bound_over_a_few_pixels_holds_for_every_sampled_image_and_is_exact_on_a_point(name):
+    model = models()[name]
+    e = enumeration(1)
+    image = torch.from_numpy(e.images(len(e) // 2, len(e) // 2 + 1))
+    c = int(model(image).argmax())
+    net = IncrementalNetwork.of(model)
+    rng = np.random.default_rng(0)
+    g = torch.Generator().manual_seed(0)
+    with torch.inference_mode():
+        net.start(image)
+        for trial in range(12):
+            near = rng.integers(0, H * W)
+            pixels = np.unique(np.clip(near + rng.integers(-2, 3, rng.integers(1, 5)) * (1 + W * (trial % 2)), 0,
+                                       H * W - 1))  # fmt: skip
+            nominal = image.reshape(3, -1)[:, pixels]
+            other = torch.rand(3, len(pixels), generator=g)
+            low, high = torch.minimum(nominal, other), torch.maximum(nominal, other)
+            bound = net.bound(pixels, low, high, c)
+            samples = image.repeat(300, 1, 1, 1).reshape(300, 3, -1)
+            samples[:, :, pixels] = low + torch.rand(300, 3, len(pixels), generator=g) * (high - low)
+            worst = margin(model, samples.reshape(300, 3, H, W), c).min()
+            assert bound <= worst + 1e-5, (trial, bound, worst)
+            point = net.bound(pixels, nominal, nominal, c)  # a box of one image: its own margin
+            assert point == pytest.approx(float(margin(model, image, c)[0]), abs=1e-5)
+
+
+def test_a_bound_and_a_variant_kept_across_steps_equal_those_computed_afresh():
+    """The bound over the same few pixels, and the logits of the image changed there, are kept
+    while the steps change pixels they did not read (the head is affine): at every step of an
+    enumeration they equal a fresh network's bound and the network's own logits."""
+    model = models()["small_cnn"]
+    e = enumeration(2, 0.002, scale=4)
+    net = IncrementalNetwork.of(model)
+    assert net.boundary is not None  # the affine head: bounds are kept
+    table = torch.from_numpy(e.table())
+    bounds = np.searchsorted(e.change_image, np.arange(len(e) + 1), side="left")
+    pixels = np.array([40 * 4 * W + 72, 40 * 4 * W + 73, 41 * 4 * W + 72])
+    computed = []
+    offsets = net._offsets
+    net._offsets = lambda *args: computed.append(1) or offsets(*args)
+    steps = min(len(e), 160) - 1
+    with torch.inference_mode():
+        net.start(torch.from_numpy(e.images(0, 1)))
+        c = int(net.values[net.output].argmax())
+        for k in range(1, min(len(e), 160)):
+            lo, hi = bounds[k], bounds[k + 1]
+            net.step(e.change_pixel[lo:hi], table[e.change_winner[lo:hi]].T)
+            nominal = net.values[0].reshape(3, -1)[:, pixels].clone()
+            assert len(e) > 160
+            low, high = nominal - 0.3 * torch.rand(3, 3, generator=torch.Generator().manual_seed(0)), nominal
+            bound = net.bound(pixels, low, high, c)
+            fresh = IncrementalNetwork.of(model)
+            fresh.start(net.values[0].clone())
+            assert bound == pytest.approx(fresh.bound(pixels, low, high, c), abs=1e-5), k
+            variant = net.values[0].clone()  # the image with the pixels given their lower colours
+            variant.view(3, -1)[:, pixels] = low
+            assert torch.allclose(net.variant(pixels, low), model(variant), atol=1e-5), k
+            assert torch.equal(net.values[0].view(3, -1)[:, pixels], nominal)  # left as it was
+    assert len(computed) < steps / 2  # most steps kept it
+
+
+@pytest.mark.parametrize(
+    "layer",
+    [nn.Conv2d(3, 4, 3, padding=2, dilation=2), nn.Upsample(scale_factor=2), nn.MaxPool2d(2, ceil_mode=True)],
+    ids=["dilated", "upsample", "ceil_pool"],
+)
+def test_a_graph_with_a_layer_it_cannot_update_by_window_is_refused(layer):
+    model = nn.Sequential(layer, nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.LazyLinear(2))
+    model(torch.zeros(1, 3, H, W))
+    assert IncrementalNetwork.of(model.eval()) is None
+
+
+def test_the_method_answers_the_same_with_and_without_incremental_classification():
+    """On the 90 x 160 test scene along tz, a small CNN: outcome, least margin and the images
+    classified agree whether images are classified whole or incrementally."""
+    sample = sample_for("tz", 0.003)
+    model = randomised(SmallCNN(3, width=4), 4)
+    answers = []
+    for incremental in (True, False):
+        method = ImageEnumeration("tz", 0.003, incremental=incremental)
+        cert = method.certifier(BaseClassifier(model, 3, batch_size=64)).certify_sample(
+            sample.renderer(), REQUEST, torch.Generator()
+        )
+        answers.append(cert)
+    a, b = answers
+    assert a.details["outcome"] == b.details["outcome"] and a.prediction == b.prediction
+    assert a.details["images"] == b.details["images"] > 100
+    assert a.margin == pytest.approx(b.margin, abs=1e-5)
+
+
+def test_images_rounding_may_render_are_decided_alike_incrementally_and_whole():
+    """A wall with a second point one float spacing behind a third of its points (records where
+    the farther one has the lower rank): the variants those records allow are decided by the
+    incremental path (nominal logits many at a time, each variant's change kept near its pixels)
+    as by the whole-image path, on models that verify and models that do not."""
+    points, colors = occluding_scene(1)
+    points, colors = points.numpy(), colors.numpy()
+    rng = np.random.default_rng(5)
+    twins = rng.choice(np.nonzero(points[:, 2] == 3.0)[0], 300, replace=False)
+    behind = points[twins].copy()
+    behind[:, 2] = np.nextafter(behind[:, 2], 4.0)
+    points = np.concatenate([behind, points])  # first: the lower rank, which wins a tie
+    colors = np.concatenate([rng.uniform(0, 1, (len(twins), 3)).astype(np.float32), colors])
+    a = 0.002
+    bound = ImageEnumeration("tz", a).crop_bound(1.0)
+    sample = TestSample.build(points, colors, PAPER_K, 90, 160, label=0, bound=bound)
+    cloud = sample.cloud_for(torch.tensor([[0, 0, -a, 0, 0, 0], [0, 0, a, 0, 0, 0]], dtype=torch.float64))
+    e = enumerate_images(*cloud, PAPER_K, 90, 160, sample.background, "tz", -a, a)
+    assert len(e.fragile) > 3  # the records this test is about
+    outcomes = []
+    for seed in range(3):
+        model = randomised(SmallCNN(3, width=4), 10 + seed)
+        answers = [
+            ImageEnumeration("tz", a, incremental=incremental)
+            .certifier(BaseClassifier(model, 3, batch_size=64))
+            .certify_sample(sample.renderer(), REQUEST, torch.Generator())
+            for incremental in (True, False)
+        ]
+        mine, whole = answers
+        assert mine.details["outcome"] == whole.details["outcome"], seed
+        outcomes.append(mine.details["outcome"])
+    assert {"verified", "unknown"} <= set(outcomes)  # a variant classified otherwise: unknown, on both paths
