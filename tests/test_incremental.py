@@ -247,7 +247,8 @@ def test_images_rounding_may_render_are_decided_alike_incrementally_and_whole():
     e = enumerate_images(*cloud, PAPER_K, 90, 160, sample.background, "tz", -a, a)
     assert len(e.fragile) > 3  # the records this test is about
     outcomes = []
-    for seed in range(3):
+    for seed in range(4):
+        torch.manual_seed(seed)  # the weights
         model = randomised(SmallCNN(3, width=4), 10 + seed)
         answers = [
             ImageEnumeration("tz", a, incremental=incremental)

@@ -302,14 +302,8 @@ class _Run:
             if not len(here):
                 continue
             net.start(torch.from_numpy(e.images(u, u + 1)))
-            pixels = np.unique(here[:, 2])
             # a record closes where its pixel changes, so the pixels keep their colour over [u, v)
-            colours = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu().clone()
-            options = [[table[q] for _, _, p, q in here.tolist() if p == pixel] for pixel in pixels.tolist()]
-            low, high = colours.clone(), colours.clone()
-            for j, allowed in enumerate(options):
-                for colour in allowed:
-                    low[:, j], high[:, j] = torch.minimum(low[:, j], colour), torch.maximum(high[:, j], colour)
+            pixels, options, low, high = _allowed(net, here, table)
             variants = []  # every combination of the colours the records allow (none: too many to classify)
             if int(np.prod([len(o) + 1 for o in options], dtype=float)) - 1 <= VARIANTS:
                 for combo in itertools.product(*([None, *o] for o in options)):
@@ -427,14 +421,7 @@ class _Run:
         pixels its winner's colour or a record's point's) is classified ``c``: by an interval bound
         over them all, else each classified (at most :data:`VARIANTS`)."""
         net = self.incremental
-        pixels = np.unique(records[:, 2])
-        nominal = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu().clone()
-        options = [[table[q] for _, _, p, q in records.tolist() if p == pixel] for pixel in pixels.tolist()]
-        low, high = nominal.clone(), nominal.clone()
-        for j, colours in enumerate(options):
-            for colour in colours:
-                low[:, j] = torch.minimum(low[:, j], colour)
-                high[:, j] = torch.maximum(high[:, j], colour)
+        pixels, options, low, high = _allowed(net, records, table)
         scale = ROUNDING * max(1.0, float(logits.abs().max()))
         if net.bound(pixels, low, high, c) > scale:
             return True
@@ -486,3 +473,16 @@ class _Run:
                 "counterexample": float(pose),
             },
         )  # fmt: skip
+
+
+def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
+    """The fragile records' pixels, the colours each may take besides its current one, and the
+    least and greatest colour per pixel and channel (the current one included), (C, P) each."""
+    pixels = np.unique(records[:, 2])
+    current = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu()
+    options = [[table[q] for _, _, p, q in records.tolist() if p == pixel] for pixel in pixels.tolist()]
+    low, high = current.clone(), current.clone()
+    for j, colours in enumerate(options):
+        for colour in colours:
+            low[:, j], high[:, j] = torch.minimum(low[:, j], colour), torch.maximum(high[:, j], colour)
+    return pixels, options, low, high
