@@ -304,12 +304,7 @@ class _Run:
             net.start(torch.from_numpy(e.images(u, u + 1)))
             # a record closes where its pixel changes, so the pixels keep their colour over [u, v)
             pixels, options, low, high = _allowed(net, here, table)
-            variants = []  # every combination of the colours the records allow (none: too many to classify)
-            if int(np.prod([len(o) + 1 for o in options], dtype=float)) - 1 <= VARIANTS:
-                for combo in itertools.product(*([None, *o] for o in options)):
-                    which = [j for j, colour in enumerate(combo) if colour is not None]
-                    if which:
-                        variants.append((pixels[which], torch.stack([combo[j] for j in which], 1)))
+            variants = _combinations(pixels, options) or []  # none: too many to classify
             # What the bound and the variants read, while the image is whole: the same windows at
             # every later image, so only the changes inside what they depend on are followed.
             net.offsets(pixels, low, high, c)
@@ -425,20 +420,16 @@ class _Run:
         scale = ROUNDING * max(1.0, float(logits.abs().max()))
         if net.bound(pixels, low, high, c) > scale:
             return True
-        count = int(np.prod([len(o) + 1 for o in options])) - 1
-        if count > VARIANTS:
+        variants = _combinations(pixels, options)
+        if variants is None:
             return False
-        for combo in itertools.product(*([None, *o] for o in options)):
-            changed = [j for j, colour in enumerate(combo) if colour is not None]
-            if not changed:
-                continue
-            colours = torch.stack([combo[j] for j in changed], 1)
-            margin = float(self.margins(net.variant(pixels[changed], colours).float().cpu(), c)[0])
+        for where, colours in variants:
+            margin = float(self.margins(net.variant(where, colours).float().cpu(), c)[0])
             self.classified += 1
             if margin <= scale:  # near 0 or below: the variant classified on its own decides
                 image = net.values[0].clone()
                 flat = image.view(image.shape[1], -1)
-                flat[:, torch.from_numpy(pixels[changed])] = colours.to(image.dtype)
+                flat[:, torch.from_numpy(where)] = colours.to(image.dtype)
                 with torch.inference_mode():
                     margin = float(self.margins(self.base.model(image.to(self.base.device)).float().cpu(), c)[0])
                 if margin < 0:
@@ -486,3 +477,17 @@ def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
         for colour in colours:
             low[:, j], high[:, j] = torch.minimum(low[:, j], colour), torch.maximum(high[:, j], colour)
     return pixels, options, low, high
+
+
+def _combinations(pixels: np.ndarray, options: list) -> list[tuple[np.ndarray, torch.Tensor]] | None:
+    """Every image the records allow beside the current one, as (pixels changed, their colours
+    (C, n)): each pixel its current colour or one of its options, not all current; None where
+    there are more than :data:`VARIANTS`."""
+    if float(np.prod([len(o) + 1 for o in options], dtype=float)) - 1 > VARIANTS:
+        return None
+    out = []
+    for combo in itertools.product(*([None, *o] for o in options)):
+        which = [j for j, colour in enumerate(combo) if colour is not None]
+        if which:
+            out.append((pixels[which], torch.stack([combo[j] for j in which], 1)))
+    return out
