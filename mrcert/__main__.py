@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import sys
+
+from mrcert.formats.answer import watch_command_line
+
+watch_command_line(sys.argv[1:])  # a verification's time limit counts from here: before the slow imports
+
 import errno
 import logging
 import os
 import shutil
 import signal
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -33,9 +38,16 @@ from mrcert.tasks.inputs import check_inputs
 
 log = logging.getLogger("mrcert")
 
-OmegaConf.register_new_resolver(
-    "mrcert_task_help", lambda: "\n".join(f"  {n:<10} {TASKS.summary(n)}" for n in TASKS), replace=True
-)
+
+def task_help() -> str:
+    """The tasks with their one line, for ``mrcert --help``; empty in a launch that shows no help
+    (Hydra resolves the help text in every launch, and reading every task's summary takes time)."""
+    if not any(a in ("--help", "-h") for a in sys.argv[1:]):
+        return ""
+    return "\n".join(f"  {n:<10} {TASKS.summary(n)}" for n in TASKS)
+
+
+OmegaConf.register_new_resolver("mrcert_task_help", task_help, replace=True)
 
 
 def groups_help() -> str:
@@ -78,8 +90,8 @@ def run_task(cfg: DictConfig, output_dir: Path) -> dict[str, Any]:
     Any failure of a job in a multirun marks the sweep's parent run FAILED.
     """
     try:
-        mrcert_config.validate(cfg)
         task = TASKS.of(cfg)
+        mrcert_config.validate(cfg, task.scene_task)
         if not task.tracked:  # outside MLflow runs: its launch leaves no folder
             result = task.run(cfg, None)
             discard_launch(output_dir)

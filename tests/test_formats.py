@@ -165,13 +165,14 @@ def test_exported_instances_hold_every_image_of_their_piece_and_verify_back(tmp_
 
 def test_the_verification_page_states_what_the_reader_reads_and_refuses():
     """docs/verification.md's section on what is read is the one the reader's own tables give,
-    with the limits task=verify's config sets."""
+    with the limits task=verify's config sets, and its harness section is the one the code states."""
     from omegaconf import OmegaConf
 
     from mrcert.formats.onnx_model import MAX_MODEL_BYTES
     from mrcert.formats.vnnlib import MAX_PROPERTY_BYTES
-    from mrcert.tasks.verify import reading_section
+    from mrcert.tasks.verify import harness_section, reading_section
 
-    assert reading_section() in (ROOT / "docs" / "verification.md").read_text()
+    page = (ROOT / "docs" / "verification.md").read_text()
+    assert reading_section() in page and harness_section() in page
     conf = OmegaConf.load(ROOT / "conf" / "task" / "verify.yaml")
     assert conf.max_model_mb * 2**20 == MAX_MODEL_BYTES and conf.max_property_mb * 2**20 == MAX_PROPERTY_BYTES

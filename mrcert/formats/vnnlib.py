@@ -36,6 +36,8 @@ from mrcert.errors import MrcertError
 
 TOKEN = re.compile(r"\(|\)|[^\s()]+")
 NAME = re.compile(r"([XY])_(\d+)")
+BOUND = re.compile(r"\s*\(\s*assert\s+\(\s*(<=|>=)\s+(X_\d+)\s+([^\s();]+)\s*\)\s*\)\s*")
+"""A line that asserts one bound of one input, the bulk of a property: read without tokens."""
 MAX_PROPERTY_BYTES = 64 * 2**20
 """The largest property file (unzipped) read by default."""
 MAX_DISJUNCTS = 10_000
@@ -106,6 +108,13 @@ class _Reader:
         stack: list[Form] = []
         for number, line in enumerate(self._lines(), start=1):
             self.line = number
+            simple = None if stack else BOUND.fullmatch(line)
+            if simple is not None:  # (assert (<= X_i c)): most lines of a property, read whole
+                inner = Form(simple.group(1, 2, 3))
+                outer = Form(["assert", inner])
+                inner.line = outer.line = number
+                yield outer
+                continue
             for tok in TOKEN.findall(line.split(";", 1)[0]):
                 if tok == "(":
                     form = Form()
@@ -270,6 +279,12 @@ def read_cases(
             raise reader.fail(form.line, f"expected (declare-const ...) or (assert ...), got ({form[0]} ...)")
         if len(form) != 2:
             raise reader.fail(form.line, f"expected (assert FORMULA) with one formula, got {len(form) - 1}")
+        bound = form[1]
+        if len(bound) == 3 and bound[0] in ("<=", ">=") and isinstance(bound[1], str) and isinstance(bound[2], str):
+            var = variable(bound[1], bound.line)
+            if var is not None and var[0] == "X" and NAME.fullmatch(bound[2]) is None:  # X_i <= c or X_i >= c
+                _tighten(low, high, ((var[1], bound[0] == "<=", number(bound[2], bound.line)),))
+                continue
         dnf = normal_form(form[1])
         if len(dnf) == 1:  # a conjunction: its bounds and comparisons hold throughout
             _tighten(low, high, dnf[0].bounds)

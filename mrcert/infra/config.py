@@ -186,8 +186,9 @@ def _trained_for(data: dict) -> None:
     trained_for(data)
 
 
-def validate(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded)."""
+def validate(cfg: DictConfig, scene_task: bool = True) -> None:
+    """Raise :class:`ConfigError` for the first value that breaks a rule (hydra node excluded);
+    the method and the model only for a task that reads them (``scene_task``)."""
     _unknown_top_level(cfg)
     try:
         data = plain(cfg, throw_on_missing=True)
@@ -207,12 +208,13 @@ def validate(cfg: DictConfig) -> None:
         relations = getattr(schema, "relations", None)
         if relations is not None:
             relations(_at(data, where), where, data)
-    _method(cfg, data)
-    _trained_for(data)
-    if "model" in data:
-        from mrcert.core.models import check_net
+    if scene_task:  # the method and the model, built and checked once (their imports take seconds)
+        _method(cfg, data)
+        _trained_for(data)
+        if "model" in data:
+            from mrcert.core.models import check_net
 
-        check_net(data["model"].get("net"))
+            check_net(data["model"].get("net"))
     _device(data.get("device", "auto"))
 
 

@@ -217,6 +217,7 @@ class Verify:
     timeout: float | None = None
     relaxation: str = MISSING
     max_boxes: int = MISSING
+    relu_domains: int = checked(COUNT)
     max_model_mb: float = checked(POSITIVE)
     max_property_mb: float = checked(POSITIVE)
     result: str | None = None

@@ -38,6 +38,9 @@ class Task:
     run's checkpoint: a store copied without it trains the model again)."""
     tracked: ClassVar[bool] = True
     """Whether it runs inside an MLflow run of its own (``task=ui`` serves the store and adds no run to it)."""
+    scene_task: ClassVar[bool] = True
+    """Whether it reads the composed data set, model and method, which are then checked (and
+    their modules imported) before it runs; ``task=verify`` reads files of its own."""
     log: ClassVar[str | None] = None
     """The per-image log the task writes (in its run folder and artifacts), for tables and shards."""
     columns: ClassVar[tuple[str, ...]] = ()

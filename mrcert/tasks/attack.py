@@ -29,7 +29,8 @@ from mrcert.core.sampling import image_generator
 from mrcert.errors import MrcertError
 from mrcert.infra.tasks import EVALUATION, FIXED_PREDICT, Task, model_title
 from mrcert.infra.tracking import RunContext
-from mrcert.tasks.evaluation import log_headline, prepare, result_log, run_per_image
+from mrcert.tasks.evaluation import prepare, run_per_image
+from mrcert.tasks.run_log import log_headline, result_log
 
 
 def build_attack(attack: DictConfig) -> MotionAttack:

@@ -19,7 +19,8 @@ from mrcert.infra.tasks import EVALUATION, Task, model_title
 from mrcert.infra.tracking import RunContext
 from mrcert.reporting import certify_log
 from mrcert.reporting.plots import curve_figure, save
-from mrcert.tasks.evaluation import log_headline, prepare, result_log, run_per_image
+from mrcert.tasks.evaluation import prepare, run_per_image
+from mrcert.tasks.run_log import log_headline, result_log
 
 
 def report(df, cfg_radius: float, step: float, ctx: RunContext, title: str, region: str) -> None:

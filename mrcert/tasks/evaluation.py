@@ -7,7 +7,6 @@ import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,10 +23,7 @@ from mrcert.errors import MrcertError
 from mrcert.infra.checkpoints import load_classifier
 from mrcert.infra.progress import progress
 from mrcert.infra.runtime import batch_size, render_batch, resolve_device
-from mrcert.infra.seals import tag
-from mrcert.infra.tasks import TASKS
-from mrcert.infra.tracking import RunContext
-from mrcert.reporting.certify_log import ResultLog, read_log
+from mrcert.reporting.certify_log import ResultLog
 
 
 def job_indices(total: int, skip: int, limit: int | None, shard: int, num_shards: int) -> list[int]:
@@ -99,23 +95,6 @@ def prepare(cfg: DictConfig) -> Evaluation:
     return Evaluation(bundle, samples, model, method, certifier, indices, device, str(t.get("backend", "auto")))
 
 
-def result_log(ctx: RunContext, task: str, extra: tuple[str, ...] = ()) -> ResultLog:
-    """The per-image log of ``task`` (its name and columns from the task table, then ``extra``:
-    a method's own columns) in the run's folder, owned by this run (rows of any other run found
-    there are set aside, never adopted)."""
-    name = TASKS[task].log
-    recorded = ctx.tracker.tags.get(tag(name))
-    columns = [*TASKS[task].columns, *extra]
-    return ResultLog(ctx.output_dir / name, columns, ctx.tracker.owner, ctx.tracker.record(), recorded)
-
-
-def log_headline(ctx: RunContext, task: str, log: Path, cfg: DictConfig) -> dict[str, float]:
-    """The task's headline metrics of its finished per-image log, logged with the log."""
-    metrics = TASKS[task].summarize(read_log(log, list(TASKS[task].columns)), cfg)
-    log_outputs(ctx, metrics, log)
-    return metrics
-
-
 def run_per_image(log: ResultLog, ev: Evaluation, work: Callable[[int], dict[str, Any]], desc: str) -> int:
     """Run ``work(i)`` for every image of ``ev`` not yet in ``log``, appending each row as it is
     done; a row already there is adopted only when it is valid for that image (its label)."""
@@ -127,9 +106,3 @@ def run_per_image(log: ResultLog, ev: Evaluation, work: Callable[[int], dict[str
         row["seconds"] = time.perf_counter() - start
         log.append({"idx": i} | row)
     return len(todo)
-
-
-def log_outputs(ctx: RunContext, metrics: dict[str, float], *paths) -> None:
-    ctx.tracker.log_metrics(metrics)
-    for p in paths:
-        ctx.tracker.log_artifact(p)

@@ -19,7 +19,7 @@ from mrcert.infra.tracking import RunContext
 from mrcert.reporting import certify_log
 from mrcert.reporting.certify_log import read_log
 from mrcert.tasks.certify import report
-from mrcert.tasks.evaluation import log_headline
+from mrcert.tasks.run_log import log_headline
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:

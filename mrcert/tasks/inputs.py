@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mrcert.errors import MrcertError
 from mrcert.infra.identity import Identity
+from mrcert.infra.tasks import TASKS
 
 
 def _checkpoint(path: Path, cfg: DictConfig) -> None:
@@ -68,6 +69,9 @@ CHECKS: dict[str, Callable[[Path, DictConfig], None]] = {
 }
 
 
+GZIPPED = ("task.onnx", "task.vnnlib")
+"""The file inputs that may be given by the name they have once unzipped (``X`` for ``X.gz``)."""
+
 FOLDERS = ("task.store",)
 """The file inputs that are folders (another store's outputs folder, or a tracking URI)."""
 
@@ -87,7 +91,8 @@ def check_inputs(cfg: DictConfig, identity: Identity) -> None:
     input of ``cfg`` that is missing or unreadable; a checkpoint file last, once the data's files
     passed, as a mrcert checkpoint of the data set's classes (``runs:/`` URIs are checked against
     the store when bound)."""
-    check_classes(cfg.data)
+    if TASKS.of(cfg).scene_task:  # a task that reads the data set
+        check_classes(cfg.data)
     if OmegaConf.select(cfg, "task.name") == "verify":  # its instances, every file they name
         from mrcert.tasks.verify import instances
 
@@ -97,6 +102,8 @@ def check_inputs(cfg: DictConfig, identity: Identity) -> None:
         if value is None or value == "???" or ":/" in str(value):
             continue
         path = Path(str(value))
+        if key in GZIPPED and not path.exists() and path.with_name(path.name + ".gz").is_file():
+            path = path.with_name(path.name + ".gz")  # a benchmark ships its files gzipped
         if not path.exists():
             raise MrcertError(f"{key}={str(value)!r} does not exist")
         folder = key == "data.path" and cfg.data.get("source") == "metaroom"  # the released data set's folder

@@ -12,7 +12,8 @@ from mrcert.core.methods.base import ABSTAIN
 from mrcert.core.sampling import image_generator
 from mrcert.infra.tasks import EVALUATION, FIXED_PREDICT, Task, model_title
 from mrcert.infra.tracking import RunContext
-from mrcert.tasks.evaluation import log_headline, prepare, result_log, run_per_image
+from mrcert.tasks.evaluation import prepare, run_per_image
+from mrcert.tasks.run_log import log_headline, result_log
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:

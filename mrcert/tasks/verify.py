@@ -33,6 +33,7 @@ from omegaconf import DictConfig
 from mrcert.core.verification.boxes import BoxVerdict, verify_box
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import MrcertError
+from mrcert.formats.answer import GRACE, RESERVE, process_start, result_file
 from mrcert.formats.onnx_model import MAX_MODEL_BYTES, ReferenceCheck, read_onnx
 from mrcert.formats.vnnlib import MAX_PROPERTY_BYTES, Property, counterexample_text, read_cases
 from mrcert.infra.identity import Identity
@@ -40,7 +41,6 @@ from mrcert.infra.progress import progress
 from mrcert.infra.runtime import launch_command, machine, resolve_device
 from mrcert.infra.tasks import HELPER_IGNORES, Task
 from mrcert.infra.tracking import RunContext
-from mrcert.tasks.evaluation import log_headline, result_log
 
 DEFAULT_TIMEOUT = 300.0
 
@@ -83,6 +83,11 @@ def _existing(path: Path) -> Path:
     raise MrcertError(f"instance file {str(path)!r} does not exist")
 
 
+FORWARD_INPUTS = 4096
+"""Boxes that perturb at most this many inputs are bounded by linear bounds carried forwards in
+those inputs (:class:`~mrcert.core.verification.network.BoundNetwork`): a benchmark's boxes
+perturb a few pixels of an image, and every fixed one is a constant."""
+
 CHECK_POINTS = 3
 """Seeded random points of each box (beside its corners and centre) at which the network read is
 run by the reference executor before the instance is answered."""
@@ -106,7 +111,7 @@ class Network:
             outputs = int(model(torch.zeros(shape)).shape[1])
         reference = ReferenceCheck(model, str(path))
         model = model.to(device)
-        return cls(model, BoundNetwork(model), reference, int(np.prod(shape)), outputs)
+        return cls(model, BoundNetwork(model, forward_inputs=FORWARD_INPUTS), reference, int(np.prod(shape)), outputs)
 
     def check(self, cases: list[Property], seed: int) -> None:
         """Refuse (one line) a reading of the file whose outputs are not the reference executor's
@@ -131,6 +136,7 @@ class Settings:
 
     relaxation: str = "crown"
     max_boxes: int = 4096
+    relu_domains: int = 1024
     seed: int = 0
     max_model_bytes: int = MAX_MODEL_BYTES
     max_property_bytes: int = MAX_PROPERTY_BYTES
@@ -138,8 +144,8 @@ class Settings:
     @classmethod
     def from_config(cls, cfg: DictConfig) -> Settings:
         t = cfg.task
-        return cls(str(t.relaxation), int(t.max_boxes), int(cfg.seed), int(float(t.max_model_mb) * 2**20),
-                   int(float(t.max_property_mb) * 2**20))  # fmt: skip
+        return cls(str(t.relaxation), int(t.max_boxes), int(t.relu_domains), int(cfg.seed),
+                   int(float(t.max_model_mb) * 2**20), int(float(t.max_property_mb) * 2**20))  # fmt: skip
 
 
 def verify_instance(
@@ -149,10 +155,12 @@ def verify_instance(
     settings: Settings = Settings(),
     device: torch.device | None = None,
     networks: dict | None = None,
+    start: float | None = None,
 ) -> tuple[BoxVerdict, str]:
     """One instance's verdict and, for ``error``, why it is not answered (module docstring).
-    ``networks`` caches the networks read (and those refused) across the instances of a benchmark."""
-    start = time.perf_counter()
+    ``networks`` caches the networks read (and those refused) across the instances of a benchmark;
+    ``timeout`` counts from ``start`` (``time.perf_counter()``; now when not given)."""
+    start = time.perf_counter() if start is None else start
     networks = {} if networks is None else networks
     device = device or torch.device("cpu")
     try:
@@ -184,7 +192,7 @@ def answer(network: Network, cases: list[Property], timeout: float, settings: Se
         verdict = verify_box(
             network.model, network.bounds, torch.from_numpy(case.low).reshape(shape),
             torch.from_numpy(case.high).reshape(shape), case.unsafe, remaining, settings.relaxation,
-            settings.max_boxes, seed=settings.seed,
+            settings.max_boxes, seed=settings.seed, relu_domains=settings.relu_domains,
         )  # fmt: skip
         boxes, forwards = boxes + verdict.boxes, forwards + verdict.forward_passes
         if verdict.result == "sat":  # the counterexample as the reference executor computes it
@@ -200,8 +208,14 @@ def answer(network: Network, cases: list[Property], timeout: float, settings: Se
 
 
 def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
+    from mrcert.tasks.run_log import log_headline, result_log
+
     t = cfg.task
     todo = instances(t)
+    single = t.result and len(todo) == 1
+    # One instance's limit counts from the process's start (imports, reading, checking included).
+    started = process_start()
+    answer_file = result_file(Path(str(t.result)), todo[0][2]) if single else None
     device = resolve_device(cfg.device)
     log = result_log(ctx, "verify")
     done = log.done({i: 0 for i in range(len(todo))})
@@ -212,15 +226,16 @@ def run(cfg: DictConfig, ctx: RunContext) -> dict[str, Any]:
     for i in progress([i for i in range(len(todo)) if i not in done], "verify"):
         onnx_path, vnnlib_path, timeout = todo[i]
         start = time.perf_counter()
-        verdict, reason = verify_instance(onnx_path, vnnlib_path, timeout, settings, device, networks)
+        begun = start - (time.time() - started) if single else start  # on the perf_counter clock
+        verdict, reason = verify_instance(onnx_path, vnnlib_path, timeout - RESERVE, settings, device, networks, begun)
         if reason:  # this instance is not answered; the others are
             print(f"error: instance {i} ({onnx_path.name}, {vnnlib_path.name}): {reason}", file=sys.stderr)
         text = verdict.result + "\n"
         if verdict.result == "sat":
             text += counterexample_text(verdict.x, verdict.y)
+        if answer_file is not None and answer_file.write(text) != verdict.result:  # the watchdog's timeout
+            verdict, text = BoxVerdict("timeout", -np.inf, verdict.boxes, verdict.forward_passes), "timeout\n"
         (results / f"{i}.txt").write_text(text)
-        if t.result and len(todo) == 1:
-            Path(str(t.result)).write_text(text)
         log.append(
             {
                 "idx": i,
@@ -349,7 +364,27 @@ def comparison(log: pd.DataFrame, machine: str, command: str) -> str | None:
         + ".",
         "",
     ]
-    return "\n".join(lines) + "\n" + reading_section()
+    return "\n".join(lines) + "\n" + reading_section() + "\n" + harness_section()
+
+
+def harness_section() -> str:
+    """How the competition's own runner calls mrcert, and what its time limit promises (the page's section)."""
+    return f"""## The competition's harness
+
+`vnncomp/install_tool.sh v1` installs mrcert from its checkout (`make install`);
+`vnncomp/prepare_instance.sh v1 CATEGORY ONNX VNNLIB` checks that the files exist (nothing is
+converted: plain and gzipped files are read as they are); `vnncomp/run_instance.sh v1 CATEGORY ONNX
+VNNLIB RESULT TIMEOUT` runs `mrcert task=verify task.onnx=ONNX task.vnnlib=VNNLIB task.result=RESULT
+task.timeout=TIMEOUT tracking=off` (`MRCERT_VNNCOMP_ARGS` replaces `tracking=off`, say with
+`tracking=sqlite` to record each instance in the store).
+
+The limit is counted from the start of the process: the search stops {RESERVE:g} s before it, and
+a watchdog, started from the command line before anything slow is imported, writes `timeout`
+into RESULT {RESERVE:g} s after it when no answer is there yet, whatever the process is doing
+then; an answer found later is not written, and a process still busy {GRACE:g} s later is ended.
+
+Beside alpha-beta-CROWN on the same machine, interleaved: docs/peer.md (`benchmarks/peer.py`).
+"""
 
 
 class Verify(Task):
@@ -361,6 +396,7 @@ class Verify(Task):
         files=("task.onnx", "task.vnnlib", "task.instances"),
     )
     reusable = False
+    scene_task = False
     log = "verify.tsv"
     columns = ("idx", "onnx", "vnnlib", "result", "margin", "boxes", "forward_passes", "seconds", "timeout", "reason")
     headline = ("verified", "falsified", "seconds_total")

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from mrcert.core.verification.network import BoundNetwork
+from mrcert.core.verification.relu_split import verify_by_relu_splits
 
 
 @dataclass
@@ -37,13 +38,17 @@ def verify_box(
     max_boxes: int = 4096,
     batch: int = 8,
     seed: int = 0,
+    relu_domains: int = 0,
 ) -> BoxVerdict:
     """Whether some input of the box ``[low, high]`` (shaped as the model's input, batch 1) gives
     outputs in the unsafe region (a VNN-LIB property's disjunction of conjunctions ``c . y + d >= 0``).
 
-    Falsification first (the box's centre and corners, seeded random points, then signed-gradient
-    steps towards the unsafe disjunct nearest to holding), then bound propagation: a disjunct is
-    ruled out on a box when one of its conjuncts' upper bound is negative; a box where some
+    The box's centre first; unless it is unsafe, one bound of the whole box (most properties are
+    verified by it); then falsification (the box's corners, seeded random points, then
+    signed-gradient steps towards the unsafe disjunct nearest to holding), then bound propagation
+    with splitting -- first, with ``relu_domains``, on the signs of unstable ReLUs
+    (:mod:`.relu_split`, for at most half the time left), then on the inputs: a disjunct is ruled
+    out on a box when one of its conjuncts' upper bound is negative; a box where some
     disjunct stays open is split in two along the input whose width costs the bound of its
     worst disjunct most (width times the backward relaxation's coefficient; with interval
     bounds alone, the widest input), until every box is verified (``unsat``), a point is
@@ -77,12 +82,24 @@ def verify_box(
             per[:, k] = slack[:, owner == k].max(1)
         return per.min(1)
 
+    def bounded(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per box, each conjunct's lower bound of failing, and per disjunct the best of them."""
+        bound = network.linear_lower(lo, hi, spec, relaxation) - offset  # > 0: the conjunct fails throughout
+        return bound, torch.stack([bound[:, rows_of].max(1).values for rows_of in groups], 1)
+
+    centre = (low + high) / 2
+    yc = outputs(centre)
+    if violation(yc)[0] <= 0:
+        return BoxVerdict("sat", float(violation(yc)[0]), 0, forwards, centre[0].cpu().numpy(), yc[0])
+    first = bounded(low, high)
+    if float(first[1].min()) > 0:  # verified by its first bound
+        return BoxVerdict("unsat", float(first[1].min()), 1, forwards)
     g = torch.Generator().manual_seed(seed)
     width = high - low
-    points = [low, high, (low + high) / 2]
+    points = [low, high, centre]
     points += [low + width * torch.rand(low.shape, generator=g, dtype=torch.float64).to(device) for _ in range(32)]
     xs = torch.cat(points)
-    ys = outputs(xs)
+    ys = np.concatenate([outputs(xs[:2]), yc, outputs(xs[3:])])
     v = violation(ys)
     best = int(np.argmin(v))
     x = xs[best : best + 1].clone()
@@ -102,20 +119,39 @@ def verify_box(
             xs[best : best + 1], ys[best], v[best] = x, yx[0], vx
     if v[best] <= 0:
         return BoxVerdict("sat", float(v[best]), 0, forwards, xs[best].cpu().numpy(), ys[best])
-    queue = [(low, high)]
-    boxes, worst = 0, np.inf
-    while queue:
-        if time.perf_counter() - start > timeout:
+    boxes, worst = 1, np.inf
+
+    def late() -> bool:
+        return time.perf_counter() - start > timeout
+
+    if relaxation == "crown" and relu_domains > 0:  # branch on ReLU signs first, for half the time left
+        half = start + (timeout + time.perf_counter() - start) / 2
+        verified, parts, least = verify_by_relu_splits(
+            network, low, high, spec, offset, groups, lambda: time.perf_counter() - start > timeout
+            or time.perf_counter() > half, relu_domains, batch,
+        )  # fmt: skip
+        boxes += parts
+        if verified:
+            return BoxVerdict("unsat", least, boxes, forwards)
+    queue: list[tuple[torch.Tensor, torch.Tensor]] = []
+    done = (low, high, *first)  # the whole box, bounded above
+
+    while queue or done is not None:
+        if late():
             return BoxVerdict("timeout", -np.inf, boxes, forwards)
-        if boxes >= max_boxes:
-            return BoxVerdict("unknown", -np.inf, boxes, forwards)
-        part, queue = queue[:batch], queue[batch:]
-        lo, hi = torch.cat([p[0] for p in part]), torch.cat([p[1] for p in part])
-        bound = network.linear_lower(lo, hi, spec, relaxation) - offset  # > 0: the conjunct fails throughout
-        boxes += len(part)
-        per = torch.stack([bound[:, rows_of].max(1).values for rows_of in groups], 1)
+        if done is not None:
+            (lo, hi, bound, per), done = done, None
+        else:
+            if boxes >= max_boxes:
+                return BoxVerdict("unknown", -np.inf, boxes, forwards)
+            part, queue = queue[:batch], queue[batch:]
+            lo, hi = torch.cat([p[0] for p in part]), torch.cat([p[1] for p in part])
+            bound, per = bounded(lo, hi)
+            boxes += len(part)
         margin = per.min(1).values.cpu().numpy()
         for j, m in enumerate(margin):
+            if late():
+                return BoxVerdict("timeout", -np.inf, boxes, forwards)
             if m > 0:
                 worst = min(worst, float(m))
                 continue
