@@ -69,7 +69,7 @@ def bind(cfg: DictConfig) -> tuple[DictConfig, RunIdentity]:
     """``cfg`` bound to its inputs (the one checkpoint an evaluation uses) and its run identity.
     Every file input is checked here, before any data is prepared or any run is created."""
     task = TASKS.of(cfg)
-    check_inputs(cfg, task.identity)
+    check_inputs(cfg, task.identity, task.scene_task)
     runs = None
     if cfg.tracking.enabled:
         runs = LiveRuns(cfg.tracking)

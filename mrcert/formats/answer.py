@@ -61,7 +61,7 @@ class ResultFile:
     answered in-process) unless a watchdog process already keeps it (``watched``)."""
 
     def __init__(self, path: Path, deadline: float, watched: bool = False):
-        self.path, self.deadline = Path(path), deadline
+        self.path = Path(path)
         self._timer = None
         if not watched:
             self.path.unlink(missing_ok=True)
@@ -133,4 +133,3 @@ def _watch(path: Path, deadline: float, parent: int) -> None:  # pragma: no cove
                     os.kill(parent, signal.SIGKILL)
     finally:
         os._exit(0)
-

@@ -16,8 +16,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from mrcert.errors import MrcertError
+from mrcert.formats import shipped
 from mrcert.infra.identity import Identity
-from mrcert.infra.tasks import TASKS
 
 
 def _checkpoint(path: Path, cfg: DictConfig) -> None:
@@ -86,12 +86,12 @@ def check_classes(data: DictConfig) -> None:
         SyntheticSource(data)  # checks the class names; builds no scene
 
 
-def check_inputs(cfg: DictConfig, identity: Identity) -> None:
+def check_inputs(cfg: DictConfig, identity: Identity, scene_task: bool = True) -> None:
     """Raise a one-line :class:`MrcertError` for unknown class names, then for the first file
     input of ``cfg`` that is missing or unreadable; a checkpoint file last, once the data's files
     passed, as a mrcert checkpoint of the data set's classes (``runs:/`` URIs are checked against
-    the store when bound)."""
-    if TASKS.of(cfg).scene_task:  # a task that reads the data set
+    the store when bound); the data set's class names only for a task that reads it (``scene_task``)."""
+    if scene_task:
         check_classes(cfg.data)
     if OmegaConf.select(cfg, "task.name") == "verify":  # its instances, every file they name
         from mrcert.tasks.verify import instances
@@ -102,8 +102,8 @@ def check_inputs(cfg: DictConfig, identity: Identity) -> None:
         if value is None or value == "???" or ":/" in str(value):
             continue
         path = Path(str(value))
-        if key in GZIPPED and not path.exists() and path.with_name(path.name + ".gz").is_file():
-            path = path.with_name(path.name + ".gz")  # a benchmark ships its files gzipped
+        if key in GZIPPED:
+            path = shipped(path)
         if not path.exists():
             raise MrcertError(f"{key}={str(value)!r} does not exist")
         folder = key == "data.path" and cfg.data.get("source") == "metaroom"  # the released data set's folder

@@ -33,6 +33,7 @@ from omegaconf import DictConfig
 from mrcert.core.verification.boxes import BoxVerdict, verify_box
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import MrcertError
+from mrcert.formats import shipped
 from mrcert.formats.answer import GRACE, RESERVE, process_start, result_file
 from mrcert.formats.onnx_model import MAX_MODEL_BYTES, ReferenceCheck, read_onnx
 from mrcert.formats.vnnlib import MAX_PROPERTY_BYTES, Property, counterexample_text, read_cases
@@ -74,13 +75,11 @@ def instances(t: DictConfig) -> list[tuple[Path, Path, float]]:
 
 
 def _existing(path: Path) -> Path:
-    """``path``, or ``path.gz`` where only that exists (a listing may name a file shipped gzipped)."""
-    if path.is_file():
-        return path
-    zipped = path.with_name(path.name + ".gz")
-    if zipped.is_file():
-        return zipped
-    raise MrcertError(f"instance file {str(path)!r} does not exist")
+    """``path``, or ``path.gz`` where only that exists (:func:`mrcert.formats.shipped`), which must exist."""
+    found = shipped(path)
+    if not found.is_file():
+        raise MrcertError(f"instance file {str(path)!r} does not exist")
+    return found
 
 
 FORWARD_INPUTS = 4096

@@ -127,8 +127,7 @@ def verify_box(
     if relaxation == "crown" and relu_domains > 0:  # branch on ReLU signs first, for half the time left
         half = start + (timeout + time.perf_counter() - start) / 2
         verified, parts, least = verify_by_relu_splits(
-            network, low, high, spec, offset, groups, lambda: time.perf_counter() - start > timeout
-            or time.perf_counter() > half, relu_domains, batch,
+            network, low, high, spec, offset, groups, lambda: late() or time.perf_counter() > half, relu_domains, batch,
         )  # fmt: skip
         boxes += parts
         if verified:

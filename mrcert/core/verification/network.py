@@ -89,6 +89,34 @@ POSITIVE_METHODS = ("flatten", "view", "reshape", "mean")
 POSITIVE_MODULES = (nn.AvgPool2d, nn.AdaptiveAvgPool2d, nn.Flatten, nn.Identity, nn.Dropout)
 
 
+def _relu_lines(lo: torch.Tensor, up: torch.Tensor):
+    """ReLU's relaxation between its pre-activation bounds (module docstring): the lower line's
+    slope (1 or 0), the upper line's slope and its intercept (the chord's, where unstable)."""
+    active, unstable = lo >= 0, (lo < 0) & (up > 0)
+    width = torch.where(unstable, up - lo, torch.ones_like(up))
+    upper = torch.where(active, 1.0, torch.where(unstable, up / width, 0.0))
+    lower = torch.where(active | (unstable & (up > -lo)), 1.0, 0.0)
+    return lower, upper, torch.where(unstable, -upper * lo, 0.0)
+
+
+def _pool_choice(layer: Layer, lo: torch.Tensor, up: torch.Tensor):
+    """Max pooling's relaxation (module docstring) over its windows: a function giving a tensor's
+    windows (padded with a fill), the input of largest lower bound in each window, whether it is
+    decided (its lower bound beats every other input's upper bound) and the greatest upper bound."""
+    k, stride, pad = layer.pool
+    c = lo.shape[1]
+
+    def windows(t: torch.Tensor, fill: float = -torch.inf) -> torch.Tensor:
+        t = F.pad(t, (pad, pad, pad, pad), value=fill)
+        return F.unfold(t, k, stride=stride).reshape(len(t), c, k * k, -1)
+
+    lw, uw = windows(lo), windows(up)
+    best = lw.argmax(2, keepdim=True)  # (n, c, 1, L)
+    others = uw.scatter(2, best, -torch.inf).amax(2)
+    decided = lw.gather(2, best)[:, :, 0] >= others  # (n, c, L)
+    return windows, best, decided, uw.amax(2)
+
+
 class BoundNetwork:
     """A classifier as layers that bounds pass through (module docstring); built once per
     model, on the model's device, in float64."""
@@ -384,12 +412,8 @@ class BoundNetwork:
                         active_, inactive_ = splits[k]
                         lo, up = torch.where(active_, lo.clamp(min=0), lo), torch.where(inactive_, up.clamp(max=0), up)
                         bounds[layer.inputs[0]] = (lo, up)
-                    active, unstable = lo >= 0, (lo < 0) & (up > 0)
-                    width = torch.where(unstable, up - lo, torch.ones_like(up))
-                    slope = torch.where(active, 1.0, torch.where(unstable, up / width, 0.0))
-                    lower = torch.where(active | (unstable & (up > -lo)), 1.0, 0.0)
-                    line = (lc * lower[:, None], l0 * lower, uc * slope[:, None],
-                            u0 * slope - torch.where(unstable, slope * lo, 0.0))  # fmt: skip
+                    lower, slope, intercept = _relu_lines(lo, up)
+                    line = (lc * lower[:, None], l0 * lower, uc * slope[:, None], u0 * slope + intercept)
                 else:
                     line = self._pool_forward(layer, ins[0], *bounds[layer.inputs[0]])
                 lines.append(line)
@@ -408,16 +432,7 @@ class BoundNetwork:
         n, c, h, w = lo.shape
         lc, l0, uc, u0 = line
         p = lc.shape[1]
-
-        def windows(t, fill):
-            t = F.pad(t, (pad, pad, pad, pad), value=fill)
-            return F.unfold(t, k, stride=stride).reshape(len(t), c, k * k, -1)
-
-        lw, uw = windows(lo, -torch.inf), windows(up, -torch.inf)
-        best = lw.argmax(2, keepdim=True)  # (n, c, 1, L)
-        others = uw.scatter(2, best, -torch.inf).amax(2)
-        decided = lw.gather(2, best)[:, :, 0] >= others  # (n, c, L)
-        top = uw.amax(2)
+        windows, best, decided, top = _pool_choice(layer, lo, up)
         oh, ow = (h + 2 * pad - k) // stride + 1, (w + 2 * pad - k) // stride + 1
 
         def pick(coef, const):
@@ -541,7 +556,8 @@ class BoundNetwork:
     ) -> torch.Tensor:
         """A lower bound (B, S) of ``lam . y_start`` over the box, ``lam`` (B, S, *shape of layer
         ``start``): the coefficients passed backwards through every layer to the input (appended
-        to ``weights`` when given)."""
+        to ``weights`` when given; ``relus``: filled with each ReLU layer's split scores, as
+        :meth:`split_lower` gives them)."""
         coeffs: dict[int, torch.Tensor] = {start: lam}
         const = torch.zeros(lam.shape[:2], dtype=torch.float64, device=lam.device)
         for k in range(start, -1, -1):
@@ -565,16 +581,12 @@ class BoundNetwork:
                 self._accumulate(coeffs, layer.inputs[1], lam)
                 passed = lam
             elif layer.kind == "relu":
-                lo, up = lo[:, None], up[:, None]
-                active, unstable = lo >= 0, (lo < 0) & (up > 0)
-                width = torch.where(unstable, up - lo, torch.ones_like(up))
-                upper = torch.where(active, 1.0, torch.where(unstable, up / width, 0.0))
-                lower = torch.where(active, 1.0, torch.where(unstable & (up > -lo), 1.0, 0.0))
+                lower, upper, intercept = _relu_lines(lo[:, None], up[:, None])
                 pos, neg = lam.clamp(min=0), lam.clamp(max=0)
                 if relus is not None:  # per unstable neuron, its coefficient times its chord's intercept
-                    relus[k] = (lam.abs() * torch.where(unstable, -upper * lo, 0.0)).sum(1)
+                    relus[k] = (lam.abs() * intercept).sum(1)
                 passed = pos * lower + neg * upper
-                const += (neg * torch.where(unstable, -upper * lo, 0.0)).flatten(2).sum(-1)
+                const += (neg * intercept).flatten(2).sum(-1)
             else:
                 passed, offset = self._pool_backward(layer, lam, lo, up)
                 const += offset
@@ -602,16 +614,7 @@ class BoundNetwork:
         k, stride, pad = layer.pool
         n, c, h, w = lo.shape
         s = lam.shape[1]
-
-        def windows(t):
-            t = F.pad(t, (pad, pad, pad, pad), value=-torch.inf)
-            return F.unfold(t, k, stride=stride).reshape(n, c, k * k, -1)
-
-        lw, uw = windows(lo), windows(up)
-        best = lw.argmax(2, keepdim=True)  # (n, c, 1, L)
-        others = uw.scatter(2, best, -torch.inf).amax(2)
-        decided = lw.gather(2, best)[:, :, 0] >= others  # (n, c, L)
-        top = uw.amax(2)
+        _, best, decided, top = _pool_choice(layer, lo, up)
         lam = lam.reshape(n, s, c, -1)
         pos, neg = lam.clamp(min=0), lam.clamp(max=0)
         decided = decided[:, None]
