@@ -26,6 +26,7 @@ import csv
 import gzip
 import os
 import re
+import shlex
 import shutil
 import statistics
 import subprocess
@@ -189,11 +190,11 @@ def page(args, rows: list[dict], table: list[str], names: list[str]) -> str:
     from mrcert.infra.runtime import machine
 
     kept, skip = [], False
-    for a in sys.argv[1:]:  # the command as typed, less where it wrote
+    for a in sys.argv[1:]:  # the command as typed (paths from where it ran), less where it wrote
         if skip or a in ("--tsv", "--page"):
             skip = not skip and a in ("--tsv", "--page")
             continue
-        kept.append(a)
+        kept.append(shlex.quote(os.path.relpath(a) if os.path.isabs(a) and os.path.exists(a) else a))
     where = args.page.absolute()
     command = " ".join(["python benchmarks/peer.py", *kept, "--page",
                         str(where.relative_to(ROOT) if where.is_relative_to(ROOT) else args.page)])  # fmt: skip

@@ -326,16 +326,14 @@ def test_linear_bounds_carried_forwards_hold_on_every_layer(name, build, width):
     assert max(gained) > 0
 
 
-def test_bounds_on_the_parts_of_a_relu_split_hold_there_and_the_parts_cover_the_box():
-    """Two inputs, two ReLU layers, three classes, a 401 x 401 grid of each box: for each of its
-    unstable neurons assumed active and then inactive, the margins bounded on that part are never
-    above the least margin over the grid's points in it (an empty part: +inf), and on at least
-    one split both parts' bounds beat the unsplit box's."""
+def two_input_boxes():
+    """A ReLU network of two inputs (two ReLU layers, three classes), and three boxes of it, each
+    with a 401 x 401 grid of its points, every layer's value there, the centre's class and the
+    margins' specification (the other classes' rows)."""
     torch.manual_seed(4)
     net = nn.Sequential(nn.Linear(2, 8), nn.ReLU(), nn.Linear(8, 8), nn.ReLU(), nn.Linear(8, 3)).double()
     network = BoundNetwork(net, forward_inputs=16)
     grid = torch.stack(torch.meshgrid(torch.linspace(0, 1, 401), torch.linspace(0, 1, 401), indexing="ij"), -1)
-    gained = False
     for seed in range(3):
         low, high = random_box((2,), 0.3, seed)
         points = (low + (high - low) * grid.reshape(-1, 2).double()).detach()
@@ -344,7 +342,16 @@ def test_bounds_on_the_parts_of_a_relu_split_hold_there_and_the_parts_cover_the_
         target = int(values[network.output][len(points) // 2].argmax())
         spec = -torch.eye(3, dtype=torch.float64)
         spec[:, target] += 1.0
-        spec = spec[[j for j in range(3) if j != target]]
+        yield network, low, high, points, values, target, spec[[j for j in range(3) if j != target]]
+
+
+def test_bounds_on_the_parts_of_a_relu_split_hold_there_and_the_parts_cover_the_box():
+    """Two inputs, two ReLU layers, three classes, a 401 x 401 grid of each box: for each of its
+    unstable neurons assumed active and then inactive, the margins bounded on that part are never
+    above the least margin over the grid's points in it (an empty part: +inf), and on at least
+    one split both parts' bounds beat the unsplit box's."""
+    gained = False
+    for seed, (network, low, high, _, values, target, spec) in enumerate(two_input_boxes()):
         whole, scores = network.split_lower(low, high, spec, {})
         for k, score in scores[0].items():
             pre = values[network.layers[k].inputs[0]].flatten(1)
@@ -363,6 +370,38 @@ def test_bounds_on_the_parts_of_a_relu_split_hold_there_and_the_parts_cover_the_
                     parts.append(bound)
                 gained |= bool(((parts[0] > whole[0] + 1e-9) & (parts[1] > whole[0] + 1e-9)).any())
     assert gained
+
+
+def test_optimised_slopes_and_split_multipliers_hold_on_the_part_and_never_loosen():
+    """The same grid and network: on parts split on two unstable neurons at once (each sign of
+    each), the bounds with optimised ReLU slopes and split multipliers (alpha- and beta-CROWN)
+    are never above the least margin over the grid's points in the part, never below the bounds
+    without them, and on some part strictly above."""
+    gained = 0.0
+    for seed, (network, low, high, points, values, target, spec) in enumerate(two_input_boxes()):
+        _, scores = network.split_lower(low, high, spec, {})
+        unstable = [(k, i) for k, score in scores[0].items() for i in torch.nonzero(score.flatten() > 0)[:, 0].tolist()]
+        for (k1, i1), (k2, i2) in itertools.combinations(unstable[:5], 2):
+            for signs in itertools.product((True, False), repeat=2):
+                splits, inside = {}, torch.ones(len(points), dtype=torch.bool)
+                for (k, i), active in zip(((k1, i1), (k2, i2)), signs, strict=True):
+                    shape = scores[0][k].shape[1:]
+                    on, off = splits.get(k, (torch.zeros((1, *shape), dtype=torch.bool),) * 2)
+                    on, off = on.clone(), off.clone()
+                    (on if active else off).view(-1)[i] = True
+                    splits[k] = (on, off)
+                    pre = values[network.layers[k].inputs[0]].flatten(1)[:, i]
+                    inside &= pre >= 0 if active else pre <= 0
+                plain = network.split_lower(low, high, spec, splits)[0][0]
+                optimised = network.split_lower(low, high, spec, splits, steps=30)[0][0]
+                y = values[network.output][inside]
+                truth = (y[:, target : target + 1] - y).min(0).values if len(y) else torch.full((3,), torch.inf)
+                seen = torch.stack([truth[j] for j in range(3) if j != target])
+                assert (optimised <= seen + 1e-9).all(), (seed, k1, i1, k2, i2, signs)
+                assert (optimised >= plain - 1e-12).all()
+                finite = torch.isfinite(plain)
+                gained = max(gained, float((optimised - plain)[finite].max()) if finite.any() else 0.0)
+    assert gained > 1e-6
 
 
 def test_a_layer_it_cannot_bound_is_refused_in_one_line():

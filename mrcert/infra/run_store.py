@@ -20,9 +20,8 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import pandas as pd
 from omegaconf import DictConfig
 
 from mrcert.infra.checkpoints import BEST_PATH
@@ -30,6 +29,9 @@ from mrcert.infra.experiment import configure
 from mrcert.infra.identity import RunIdentity
 from mrcert.infra.resumption import resumable
 from mrcert.infra.store import moved_artifact
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 log = logging.getLogger("mrcert")
 
@@ -148,6 +150,8 @@ def finished_table(experiment: str) -> pd.DataFrame:
 
     exp = mlflow.MlflowClient().get_experiment_by_name(experiment)
     if exp is None:
+        import pandas as pd  # on demand: a launch that finds no runs to read never imports it
+
         return pd.DataFrame(columns=["run_id", "start_time", KEY_COLUMN, CELL_COLUMN])
     df = mlflow.search_runs([exp.experiment_id], filter_string=FINISHED)
     for col in (KEY_COLUMN, CELL_COLUMN):

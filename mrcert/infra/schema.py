@@ -218,6 +218,7 @@ class Verify:
     relaxation: str = MISSING
     max_boxes: int = MISSING
     relu_domains: int = checked(COUNT)
+    bound_steps: int = checked(COUNT)
     max_model_mb: float = checked(POSITIVE)
     max_property_mb: float = checked(POSITIVE)
     result: str | None = None

@@ -136,6 +136,7 @@ class Settings:
     relaxation: str = "crown"
     max_boxes: int = 4096
     relu_domains: int = 1024
+    bound_steps: int = 20
     seed: int = 0
     max_model_bytes: int = MAX_MODEL_BYTES
     max_property_bytes: int = MAX_PROPERTY_BYTES
@@ -143,7 +144,7 @@ class Settings:
     @classmethod
     def from_config(cls, cfg: DictConfig) -> Settings:
         t = cfg.task
-        return cls(str(t.relaxation), int(t.max_boxes), int(t.relu_domains), int(cfg.seed),
+        return cls(str(t.relaxation), int(t.max_boxes), int(t.relu_domains), int(t.bound_steps), int(cfg.seed),
                    int(float(t.max_model_mb) * 2**20), int(float(t.max_property_mb) * 2**20))  # fmt: skip
 
 
@@ -192,6 +193,7 @@ def answer(network: Network, cases: list[Property], timeout: float, settings: Se
             network.model, network.bounds, torch.from_numpy(case.low).reshape(shape),
             torch.from_numpy(case.high).reshape(shape), case.unsafe, remaining, settings.relaxation,
             settings.max_boxes, seed=settings.seed, relu_domains=settings.relu_domains,
+            bound_steps=settings.bound_steps,
         )  # fmt: skip
         boxes, forwards = boxes + verdict.boxes, forwards + verdict.forward_passes
         if verdict.result == "sat":  # the counterexample as the reference executor computes it

@@ -39,6 +39,7 @@ def verify_box(
     batch: int = 8,
     seed: int = 0,
     relu_domains: int = 0,
+    bound_steps: int = 0,
 ) -> BoxVerdict:
     """Whether some input of the box ``[low, high]`` (shaped as the model's input, batch 1) gives
     outputs in the unsafe region (a VNN-LIB property's disjunction of conjunctions ``c . y + d >= 0``).
@@ -47,7 +48,8 @@ def verify_box(
     verified by it); then falsification (the box's corners, seeded random points, then
     signed-gradient steps towards the unsafe disjunct nearest to holding), then bound propagation
     with splitting -- first, with ``relu_domains``, on the signs of unstable ReLUs
-    (:mod:`.relu_split`, for at most half the time left), then on the inputs: a disjunct is ruled
+    (:mod:`.relu_split`, for at most half the time left; each part's bound with ``bound_steps``
+    gradient steps on its ReLU slopes and split multipliers), then on the inputs: a disjunct is ruled
     out on a box when one of its conjuncts' upper bound is negative; a box where some
     disjunct stays open is split in two along the input whose width costs the bound of its
     worst disjunct most (width times the backward relaxation's coefficient; with interval
@@ -128,6 +130,7 @@ def verify_box(
         half = start + (timeout + time.perf_counter() - start) / 2
         verified, parts, least = verify_by_relu_splits(
             network, low, high, spec, offset, groups, lambda: late() or time.perf_counter() > half, relu_domains, batch,
+            bound_steps,
         )  # fmt: skip
         boxes += parts
         if verified:

@@ -513,13 +513,18 @@ class BoundNetwork:
                 result[box, rows] = torch.maximum(result[box, rows], tighter)
             return result.detach()
 
-    def split_lower(self, low: torch.Tensor, high: torch.Tensor, spec: torch.Tensor, splits: dict, rows=None):
+    def split_lower(
+        self, low: torch.Tensor, high: torch.Tensor, spec: torch.Tensor, splits: dict, rows=None, steps: int = 0
+    ):
         """Lower bounds (B, S) of ``spec . y`` (``spec``: (S, K)) by the backward relaxation over
         the part of each box of ``[low, high]`` where its ReLU splits hold (``splits``: as
         :meth:`_carried` takes them; +inf for a part shown empty), and per box, per ReLU layer, a
         score (1, *shape) of each neuron left unstable there: its coefficient times its chord's
         intercept, what splitting it may gain. ``rows``: per box, the rows of ``spec`` to bound
-        (the others +inf); all when not given. None where bounds cannot be carried forwards."""
+        (the others +inf); all when not given. ``steps``: gradient steps on the lower lines' slopes
+        of the unstable neurons and on a multiplier per split neuron (:meth:`_optimised`), the best
+        bound of any step kept: each slope in [0, 1] and multiplier >= 0 gives a sound bound. None
+        where bounds cannot be carried forwards."""
         with torch.inference_mode(False), torch.no_grad():
             low, high = low.to(torch.float64).clone(), high.to(torch.float64).clone()
             bounds = self._carried(low, high, splits) if self.forward_inputs > 0 else None
@@ -536,9 +541,66 @@ class BoundNetwork:
                 chosen = torch.arange(len(spec), device=low.device) if rows is None else rows[b]
                 if not empty[b] and len(chosen):
                     some = [(lo[b : b + 1], up[b : b + 1]) for lo, up in bounds]
-                    result[b, chosen] = self._backward(some, self.output, spec[None, chosen], relus=relus)[0]
+                    signs = {k: (inactive_[b : b + 1].double() - active_[b : b + 1].double())[:, None]
+                             for k, (active_, inactive_) in splits.items()}  # fmt: skip
+                    slopes, betas = self._optimised(some, spec[None, chosen], steps, signs=signs)
+                    result[b, chosen] = self._backward(
+                        some, self.output, spec[None, chosen], relus=relus, slopes=slopes, betas=betas
+                    )[0]
                 scores.append(relus)
             return result, scores
+
+    def _optimised(self, bounds, lam: torch.Tensor, steps: int, start: int | None = None, signs: dict | None = None):
+        """Lower lines' slopes and split multipliers for the backward relaxation of ``lam . y_start``
+        (the output when not given) over one box, by ``steps`` steps of Adam (learning rate 0.1) on
+        the sum of its rows' lower bounds, each row's best kept. Slopes (alpha-CROWN, Xu et al.
+        2021): per ReLU layer, (1, S, *shape), from the default ones, projected on [0, 1] after
+        every step (any of them is a line below ReLU). Multipliers (beta-CROWN, Wang et al. 2021):
+        ``signs`` gives per ReLU layer the sign (1, 1, *shape) of each neuron split in this part (+1 where ``z <= 0`` is
+        assumed, -1 where ``z >= 0``, 0 elsewhere); ``beta >= 0`` times it is added to the
+        pre-activation's coefficient (``beta s z <= 0`` on the part, so the bound stays below the
+        function there). Returns the pair of dicts :meth:`_backward` takes."""
+        start = self.output if start is None else start
+        signs = signs or {}
+        slopes, betas = {}, {}
+        for k, layer in enumerate(self.layers[:start]):
+            if layer.kind == "relu":
+                lo, up = bounds[layer.inputs[0]]
+                lower = _relu_lines(lo[:, None], up[:, None])[0]
+                slopes[k] = lower.expand(1, lam.shape[1], *lower.shape[2:]).clone().requires_grad_(True)
+                if k in signs and bool((signs[k] != 0).any()):
+                    betas[k] = torch.zeros_like(slopes[k], requires_grad=True)
+        free = [*slopes.values(), *betas.values()]
+        best = ({k: v.detach().clone() for k, v in slopes.items()}, {k: v.detach().clone() for k, v in betas.items()})
+        if not free or steps <= 0:
+            return best[0], self._signed(best[1], signs)
+        top = torch.full(lam.shape[:2], -torch.inf, dtype=torch.float64, device=lam.device)
+        moments = [(torch.zeros_like(v), torch.zeros_like(v)) for v in free]
+        for step in range(1, steps + 1):
+            with torch.enable_grad():
+                value = self._backward(bounds, start, lam, slopes=slopes, betas=self._signed(betas, signs))
+                grads = torch.autograd.grad(value.sum(), free, allow_unused=True)
+            better = value.detach() > top
+            top = torch.where(better, value.detach(), top)
+            for kept, now in zip(best, (slopes, betas), strict=True):
+                for k, v in now.items():
+                    kept[k] = torch.where(better[0].reshape(-1, *([1] * (v.dim() - 2))), v.detach(), kept[k])
+            with torch.no_grad():  # one step of Adam (Kingma and Ba 2015) up the bound, projected
+                for v, g, (m, r) in zip(free, grads, moments, strict=True):
+                    if g is None:
+                        continue
+                    m.mul_(0.9).add_(g, alpha=0.1)
+                    r.mul_(0.999).addcmul_(g, g, value=0.001)
+                    v.add_(0.1 * (m / (1 - 0.9**step)) / ((r / (1 - 0.999**step)).sqrt() + 1e-8))
+                for v in slopes.values():
+                    v.clamp_(0.0, 1.0)
+                for v in betas.values():
+                    v.clamp_(min=0.0)
+        return best[0], self._signed(best[1], signs)
+
+    @staticmethod
+    def _signed(betas: dict, signs: dict) -> dict:
+        return {k: v * signs[k] for k, v in betas.items()}
 
     def input_weights(self, low: torch.Tensor, high: torch.Tensor, spec: torch.Tensor) -> torch.Tensor:
         """(B, S, *input shape): each input's coefficient in the backward relaxation of ``spec . y``
@@ -552,12 +614,21 @@ class BoundNetwork:
             return weights[0].detach()
 
     def _backward(
-        self, bounds, start: int, lam: torch.Tensor, weights: list | None = None, relus: dict | None = None
+        self,
+        bounds,
+        start: int,
+        lam: torch.Tensor,
+        weights: list | None = None,
+        relus: dict | None = None,
+        slopes: dict | None = None,
+        betas: dict | None = None,
     ) -> torch.Tensor:
         """A lower bound (B, S) of ``lam . y_start`` over the box, ``lam`` (B, S, *shape of layer
         ``start``): the coefficients passed backwards through every layer to the input (appended
         to ``weights`` when given; ``relus``: filled with each ReLU layer's split scores, as
-        :meth:`split_lower` gives them)."""
+        :meth:`split_lower` gives them; ``slopes``: per ReLU layer, the lower lines' slopes of its
+        unstable neurons, (B or 1, S, *shape) in [0, 1], instead of 0 or 1; ``betas``: per ReLU layer,
+        (B or 1, S, *shape) added to its pre-activation's coefficients, as :meth:`_optimised` makes them)."""
         coeffs: dict[int, torch.Tensor] = {start: lam}
         const = torch.zeros(lam.shape[:2], dtype=torch.float64, device=lam.device)
         for k in range(start, -1, -1):
@@ -582,11 +653,15 @@ class BoundNetwork:
                 passed = lam
             elif layer.kind == "relu":
                 lower, upper, intercept = _relu_lines(lo[:, None], up[:, None])
+                if slopes is not None and k in slopes:  # any slope in [0, 1] is a line below ReLU
+                    lower = torch.where((lo[:, None] < 0) & (up[:, None] > 0), slopes[k], lower)
                 pos, neg = lam.clamp(min=0), lam.clamp(max=0)
                 if relus is not None:  # per unstable neuron, its coefficient times its chord's intercept
                     relus[k] = (lam.abs() * intercept).sum(1)
                 passed = pos * lower + neg * upper
-                const += (neg * intercept).flatten(2).sum(-1)
+                if betas is not None and k in betas:
+                    passed = passed + betas[k]
+                const = const + (neg * intercept).flatten(2).sum(-1)
             else:
                 passed, offset = self._pool_backward(layer, lam, lo, up)
                 const += offset
@@ -603,8 +678,11 @@ class BoundNetwork:
         n, s = lam.shape[:2]
         zero = torch.zeros((n * s, *shape), dtype=torch.float64, device=lam.device, requires_grad=True)
         with torch.enable_grad():
-            out = layer.fn(zero)
-            (passed,) = torch.autograd.grad(out, zero, lam.reshape(n * s, *lam.shape[2:]))
+            out = layer.fn(zero)  # linear in lam: differentiable in it when lam is (optimised slopes)
+            # The gradient of the scalar <out, lam>, not a vector-Jacobian product with lam given
+            # as the output's gradient: the same numbers, without the imports torch makes for that.
+            total = (out * lam.reshape(n * s, *lam.shape[2:])).sum()
+            (passed,) = torch.autograd.grad(total, zero, create_graph=lam.requires_grad)
         offset = (lam * out.detach()[:1].reshape(1, 1, *lam.shape[2:])).flatten(2).sum(-1)
         return passed.reshape(n, s, *shape), offset
 

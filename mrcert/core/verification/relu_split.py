@@ -7,7 +7,8 @@ every part holds on the box; a part whose assumptions contradict its bounds is e
 
 The neuron split is the one of largest score (its coefficient in the backward relaxation times
 its chord's intercept: what its relaxation costs the bound), as BaBSR (Bunel et al. 2020) scores
-them."""
+them. A part the default relaxation leaves open is bounded again with optimised ReLU slopes and
+split multipliers (``steps`` gradient steps: alpha- and beta-CROWN)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ def verify_by_relu_splits(
     late: Callable[[], bool],
     max_domains: int,
     batch: int = 8,
+    steps: int = 0,
 ) -> tuple[bool, int, float]:
     """Whether every part of the box ``[low, high]`` (batch 1) rules out every disjunct (rows of
     ``spec`` by ``groups``: a disjunct is ruled out where one of its rows' bounds of
@@ -45,15 +47,17 @@ def verify_by_relu_splits(
         if late() or bounded >= max_domains:
             return False, bounded, least
         part, queue = queue[:batch], queue[batch:]
-        masks = _masks([p for p, _ in part], shapes, low.device) if shapes else {}
-        rows = [torch.nonzero(sum(groups[d] for d in open_))[:, 0] for _, open_ in part]
-        got = network.split_lower(low.expand(len(part), *low.shape[1:]), high.expand(len(part), *high.shape[1:]),
-                                  spec, masks, rows)  # fmt: skip
+        got = _bounded(network, low, high, spec, part, groups, shapes, 0)
         if got is None:
             return False, bounded, least
         bound, scores = got
         bounded += len(part)
         bound = bound - offset
+        hard = [j for j, (_, open_) in enumerate(part) if any(not bound[j, groups[d]].max() > 0 for d in open_)]
+        if steps > 0 and hard:  # only the parts the default slopes leave open get optimised ones
+            tighter, better = _bounded(network, low, high, spec, [part[j] for j in hard], groups, shapes, steps)
+            for i, j in enumerate(hard):
+                bound[j], scores[j] = torch.maximum(bound[j], tighter[i] - offset), better[i]
         for j, (split, open_) in enumerate(part):
             ruled = {d: float(bound[j, groups[d]].max()) for d in open_}
             left = frozenset(d for d, m in ruled.items() if not m > 0)
@@ -73,6 +77,15 @@ def verify_by_relu_splits(
             active, inactive = split.get(k, (frozenset(), frozenset()))
             queue += [(split | {k: (active | {i}, inactive)}, left), (split | {k: (active, inactive | {i})}, left)]
     return True, bounded, least
+
+
+def _bounded(network: BoundNetwork, low, high, spec, part, groups, shapes: dict, steps: int):
+    """The bounds of ``spec . y`` on each part of the batch (its open disjuncts' rows) and their
+    split scores (:meth:`~mrcert.core.verification.network.BoundNetwork.split_lower`)."""
+    masks = _masks([p for p, _ in part], shapes, low.device) if shapes else {}
+    rows = [torch.nonzero(sum(groups[d] for d in open_))[:, 0] for _, open_ in part]
+    n = len(part)
+    return network.split_lower(low.expand(n, *low.shape[1:]), high.expand(n, *high.shape[1:]), spec, masks, rows, steps)
 
 
 def _masks(part: list[Split], shapes: dict[int, tuple], device) -> dict:
