@@ -13,7 +13,7 @@ not given):
   on one axis, for the pixel-noise smoothed classifier, or nothing;
 * :class:`BoundPropagation` and :class:`ImageEnumeration` -- ``verify(half_width)``: every pose of
   ``[-half_width, half_width]`` on one axis, for the classifier itself and with certainty
-  (image enumeration: complete on the translations);
+  (image enumeration: complete on the translations and rz);
 * :func:`attack`: the classifier's prediction at K camera motions of an interval.
 
 They are what the command line runs (``mrcert task=certify``, ``task=attack``): the same method
@@ -179,7 +179,7 @@ class BoundPropagation(_Deterministic):
 
 
 class ImageEnumeration(_Deterministic):
-    """Exact certification by enumerating every image the interval renders (a translation axis):
+    """Exact certification by enumerating every image the interval renders (a translation or rz):
     verified or falsified, unknown only when ``max_bounds`` is spent."""
 
     def __init__(self, model, scene: Scene, axis: str = "tz", max_bounds: int = 4096, **kw):

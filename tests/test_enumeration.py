@@ -196,7 +196,83 @@ def test_every_interval_is_decided_and_none_verified_that_a_sampled_pose_classif
 
 
 def test_a_rotation_is_refused_before_any_run():
-    with pytest.raises(ConfigError, match=r"motion.axis='rx' is not allowed: a translation \(tx, ty, tz\)"):
+    with pytest.raises(ConfigError, match=r"motion.axis='rx' is not allowed: a translation or rz \(tx, ty, tz, rz\)"):
         from mrcert.infra.config import validate
 
         validate(compose_cfg(["task=certify", "method=enumeration", "motion=rx"]))
+
+
+def rz_check(points, colors, rank, lo: float, hi: float) -> tuple[int, int]:
+    """Render ``rz`` at thousands of poses (random, every image's start and its float neighbours,
+    every band's ends and inside): each image is the enumerated image of its pose, or inside a band
+    the image before or after it, or one its records allow. Returns (poses, poses inside bands)."""
+    from mrcert.core.verification.rotation_events import _bands
+
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", lo, hi)
+    bands = _bands(points, lo, hi, 20.0, 20.0, 8.0, 6.0, SMALL_H, SMALL_W)[0][:, :2]
+    inside = np.concatenate([np.linspace(x, y, 7)[1:-1] for x, y in bands]) if len(bands) else np.empty(0)
+    rng = np.random.default_rng(1)
+    poses = np.r_[rng.uniform(lo, hi, 3000), e.starts, np.nextafter(e.starts, -np.inf), np.nextafter(e.starts, np.inf)]
+    poses = np.sort(np.r_[poses, bands.ravel(), inside])
+    poses = poses[(poses >= lo) & (poses <= hi)]
+    motions = torch.zeros(len(poses), 6, dtype=torch.float64)
+    motions[:, 5] = torch.from_numpy(poses)
+    drawn = project(torch.from_numpy(points), torch.from_numpy(colors), SMALL_K, motions, SMALL_H, SMALL_W, 1.0,
+                    rank=torch.from_numpy(rank))[0].numpy()  # fmt: skip
+    images = e.images(0, len(e))
+    k = np.searchsorted(e.starts, poses, side="right") - 1
+    in_band = ((poses[:, None] > bands[None, :, 0]) & (poses[:, None] < bands[None, :, 1])).any(1)
+    assert np.array_equal(images[0], drawn[0])  # the interval's start exactly as the renderer draws it
+    for j in range(len(poses)):
+        if np.array_equal(images[k[j]], drawn[j]):
+            continue
+        near = (k[j] - 1, k[j] + 1) if in_band[j] else ()
+        if any(np.array_equal(images[q], drawn[j]) for q in near if 0 <= q < len(e)):
+            continue
+        variants = e.variants(int(k[j]), 100000)
+        assert variants is not None and any(np.array_equal(v, drawn[j]) for v in variants), (
+            f"rz={poses[j]!r} draws an image the enumeration does not hold (image {k[j]})"
+        )
+    return len(poses), int(in_band.sum())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_every_image_a_dense_sampling_finds_on_rz_is_enumerated(seed):
+    points, colors, rank = tiny_cloud(seed)
+    count, in_band = rz_check(points, colors, rank, -0.3, 0.3)
+    assert count > 10000 and in_band > 3000  # the bands' insides were sampled, not only their outsides
+
+
+def test_rz_bands_that_overlap_or_hold_an_end_are_recorded_and_every_drawn_image_allowed():
+    from mrcert.core.verification.rotation_events import _bands
+
+    points, colors, rank = tiny_cloud(0, 200)
+    points = np.r_[points, points[:40]]  # the same positions twice: their bands coincide
+    colors = np.r_[colors, np.random.default_rng(5).uniform(0, 1, (40, 3)).astype(np.float32)]
+    rank = np.random.default_rng(3).permutation(len(points))
+    band = _bands(points, -0.3, 0.3, 20.0, 20.0, 8.0, 6.0, SMALL_H, SMALL_W)[0][10]
+    lo = 0.5 * (band[0] + band[1])  # the interval starts inside a band
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", lo, lo + 0.2)
+    assert len(e.fragile) > 0
+    rz_check(points, colors, rank, lo, lo + 0.2)
+
+
+def test_the_rotation_s_cos_and_sin_are_within_one_unit_in_the_last_place():
+    """The rz bands assume the renderer's float64 cos and sin within a few units in the last
+    place of the exact value (mpmath at 40 digits)."""
+    import mpmath
+
+    from mrcert.core.verification.rotation_events import LIBM_ULPS
+
+    mpmath.mp.dps = 40
+    theta = np.r_[np.random.default_rng(0).uniform(-1, 1, 4000), np.geomspace(1e-12, 1, 200)]
+    motions = torch.zeros(len(theta), 6, dtype=torch.float64)
+    motions[:, 5] = torch.from_numpy(theta)
+    from mrcert.core.projection import rotations
+
+    R = rotations(motions).numpy()
+    for t, r in zip(theta, R, strict=True):
+        c, s = float(mpmath.cos(mpmath.mpf(abs(t)))), float(mpmath.sin(mpmath.mpf(t)))
+        assert abs(r[0, 0] - c) <= np.spacing(c) <= LIBM_ULPS * np.spacing(c)
+        assert abs(r[1, 0] - s) <= np.spacing(abs(s))
+        assert r[2, 2] == 1.0 and r[0, 2] == r[2, 0] == r[1, 2] == r[2, 1] == 0.0 and r[0, 1] == -r[1, 0]

@@ -30,7 +30,9 @@ Guarantee: verified means ``h(O(V, alpha)) = c`` for every float64 ``|alpha| <= 
 where ``h`` is the base classifier as it classifies one image (the bounds hold for it in exact
 arithmetic; the incremental logits are its float32 forward pass up to a different order of
 summation, far below the rounding margin within which an image is classified alone); nothing is
-assumed about a distribution. Translations only (``tx``, ``ty``, ``tz``).
+assumed about a distribution. Translations (``tx``, ``ty``, ``tz``) and the rotation about the
+optical axis (``rz``, :mod:`mrcert.core.verification.rotation_events`: sound while the library's
+``cos`` and ``sin`` are within a few units in the last place).
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ from mrcert.core.methods.base import (
     WholeInterval,
 )
 from mrcert.core.models import class_margins, predicted
-from mrcert.core.verification.events import TRANSLATIONS, Enumeration, enumerate_images
+from mrcert.core.verification.events import AXES, Enumeration, enumerate_images
 from mrcert.core.verification.incremental import IncrementalNetwork
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import ConfigError, MrcertError
@@ -93,9 +95,11 @@ class ImageEnumeration(WholeInterval, Method):
 
     def __post_init__(self):
         super().__post_init__()
-        if self.axis not in TRANSLATIONS:
-            allowed = f"a translation ({', '.join(TRANSLATIONS)}) for method=enumeration"
+        if self.axis not in AXES:
+            allowed = f"a translation or rz ({', '.join(AXES)}) for method=enumeration"
             raise ConfigError("motion.axis", self.axis, allowed)
+        if self.axis == "rz" and not 0 <= self.half_width <= 1:
+            raise ConfigError("method.half_width", self.half_width, "at most 1 rad on rz for method=enumeration")
 
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> ImageEnumeration:

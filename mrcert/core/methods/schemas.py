@@ -99,7 +99,7 @@ class EnumerationConfig(MethodConfig):
 
     @staticmethod
     def relations(method: Mapping[str, Any], where: str, root: Mapping[str, Any]) -> None:
-        """The images of an interval are enumerated along a translation."""
+        """The images of an interval are enumerated along a translation or about the optical axis."""
         axis = _single_axis(root)
-        if axis is not None and not is_translation(axis):
-            raise ConfigError("motion.axis", axis, "a translation (tx, ty, tz) for method=enumeration")
+        if axis is not None and not (is_translation(axis) or axis == "rz"):
+            raise ConfigError("motion.axis", axis, "a translation or rz (tx, ty, tz, rz) for method=enumeration")

@@ -38,7 +38,11 @@ import torch
 from mrcert.core.axes import axis_index
 
 TRANSLATIONS = ("tx", "ty", "tz")
-"""The axes this module enumerates."""
+"""The translations, enumerated here."""
+
+AXES = (*TRANSLATIONS, "rz")
+"""The axes enumerated: the translations here, the rotation about the optical axis in
+:mod:`mrcert.core.verification.rotation_events`."""
 
 SIGN = np.int64(-0x8000000000000000)
 
@@ -209,10 +213,27 @@ def _before(P, rank, i, j):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width):  # pragma: no cover - compiled
+def _translation_moves(P, axis, lo, times, points, fx, fy, cx, cy, height, width):  # pragma: no cover - compiled
+    """Each point's pixel at ``lo`` and at each of its crossings, as the renderer decides."""
+    start = np.empty(P.shape[0], np.int64)
+    for i in range(P.shape[0]):
+        start[i] = pixel_at(P, i, axis, lo, fx, fy, cx, cy, height, width)
+    targets = np.empty(times.shape[0], np.int64)
+    for k in range(times.shape[0]):
+        targets[k] = pixel_at(P, points[k], axis, times[k], fx, fy, cx, cy, height, width)
+    return start, targets
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_row, g_point, g_pixel, height,
+           width):  # pragma: no cover - compiled  # fmt: skip
     """The images along the interval: the first image's winners, each later image's start pose,
-    per image the pixels whose winner changed (image index, pixel, new winner; -1: none), and on
-    tz (``axis`` 2) the points rounding may hand a pixel to (from image, to image, pixel, point)."""
+    per image the pixels whose winner changed (image index, pixel, new winner; -1: none), and
+    the points rounding may hand a pixel to (from image, to image, pixel, point): on tz (``axis``
+    2) near-equal depths, and for each recorded group ``g`` (poses ``g_start[g]`` to ``g_end[g]``,
+    its points' possible pixels in rows ``g_row[g]`` to ``g_row[g + 1]`` of ``g_point`` and
+    ``g_pixel``) the colours those pixels may show. Each point starts in pixel ``start[i]`` and
+    moves to ``targets[k]`` at ``times[k]`` (-1: no pixel)."""
     n, hw = P.shape[0], height * width
     pix = np.full(n, -1, np.int64)
     head = np.full(hw, -1, np.int64)
@@ -235,9 +256,8 @@ def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width):  # 
             winner[p] = i
 
     for i in range(n):
-        p = pixel_at(P, i, axis, lo, fx, fy, cx, cy, height, width)
-        if p >= 0:
-            insert(i, p)
+        if start[i] >= 0:
+            insert(i, start[i])
     for p in range(hw):
         shown[p] = winner[p]
     first = shown.copy()
@@ -252,16 +272,26 @@ def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width):  # 
         for p in range(hw):
             _fragile_scan(P, rank, p, head, nxt, winner, lo, 0, open_from, open_count, f_from, f_to, f_pixel,
                           f_point)  # fmt: skip
+    member = np.zeros(n, np.bool_)
+    u_record, u_pose = [0], [0.0]  # a group's record, and the pose up to which it holds
+    u_record.clear(), u_pose.clear()
     m = times.shape[0]
     j = 0
-    while j < m:
-        t = times[j]
+    g = 0
+    while j < m or g < g_start.shape[0]:
+        t = times[j] if j < m else np.inf
+        if g < g_start.shape[0] and g_start[g] < t:  # a group's records, from the state at its start
+            _group_records(P, rank, head, nxt, member, g_point[g_row[g] : g_row[g + 1]],
+                           g_pixel[g_row[g] : g_row[g + 1]], len(starts) - 1, g_end[g], f_from, f_to, f_pixel,
+                           f_point, u_record, u_pose)  # fmt: skip
+            g += 1
+            continue
         k = j
         ntouched = 0
         while k < m and times[k] == t:
             i = points[k]
+            new = targets[k]
             k += 1
-            new = pixel_at(P, i, axis, t, fx, fy, cx, cy, height, width)
             old = pix[i]
             if new == old:
                 continue
@@ -322,13 +352,54 @@ def _sweep(P, rank, axis, lo, times, points, fx, fy, cx, cy, height, width):  # 
                               f_pixel, f_point)  # fmt: skip
         j = k
     m_images = len(starts)
+    begins = np.array(starts)
     for r in range(len(f_to)):
         if f_to[r] < 0:
             f_to[r] = m_images
+    for j in range(len(u_record)):  # through the image that holds the group's last pose
+        r = u_record[j]
+        f_to[r] = max(f_from[r] + 1, np.searchsorted(begins, u_pose[j], side="right"))
     fragile = np.empty((len(f_from), 4), np.int64)
     for r in range(len(f_from)):
         fragile[r, 0], fragile[r, 1], fragile[r, 2], fragile[r, 3] = f_from[r], f_to[r], f_pixel[r], f_point[r]
     return first, np.array(starts), np.array(c_image), np.array(c_pixel), np.array(c_winner), fragile
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _group_records(
+    P, rank, head, nxt, member, g_point, g_pixel, image, until, f_from, f_to, f_pixel, f_point, u_record, u_pose
+):  # pragma: no cover - compiled
+    """Records from ``image`` on (until the pose ``until``) of the colours each pixel ``g_pixel``
+    may show while the group's points ``g_point`` may be in any of their pixels: each of those
+    points that may be there, and the nearest other point there (the background if none)."""
+    for r in range(g_point.shape[0]):
+        member[g_point[r]] = True
+    for r in range(g_pixel.shape[0]):
+        p = g_pixel[r]
+        done = False
+        for r2 in range(r):
+            done = done or g_pixel[r2] == p
+        if done:
+            continue
+        best = -1
+        q = head[p]
+        while q >= 0:
+            if not member[q] and (best < 0 or _before(P, rank, q, best)):
+                best = q
+            q = nxt[q]
+        options = [best]
+        for r2 in range(g_pixel.shape[0]):
+            if g_pixel[r2] == p and g_point[r2] not in options:
+                options.append(g_point[r2])
+        for q in options:
+            u_record.append(len(f_from))
+            u_pose.append(until)
+            f_from.append(image)
+            f_to.append(-1)
+            f_pixel.append(p)
+            f_point.append(q)
+    for r in range(g_point.shape[0]):
+        member[g_point[r]] = False
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -488,8 +559,8 @@ def enumerate_images(
 ) -> Enumeration:
     """The images a cloud (camera frame, every point that can land) renders at the float poses
     ``[lo, hi]`` on the translation ``axis`` (module docstring)."""
-    if axis not in TRANSLATIONS:
-        raise ValueError(f"exact enumeration reads translations ({', '.join(TRANSLATIONS)}), got {axis!r}")
+    if axis not in AXES:
+        raise ValueError(f"exact enumeration reads {', '.join(AXES)}, got {axis!r}")
     if not lo <= hi:
         raise ValueError(f"an interval needs lo <= hi, got [{lo}, {hi}]")
     P = np.ascontiguousarray(torch.as_tensor(points, dtype=torch.float64).cpu().numpy())
@@ -503,8 +574,16 @@ def enumerate_images(
     K = torch.as_tensor(K, dtype=torch.float64)
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     a = axis_index(axis)
-    times, pts = _events(P, a, float(lo), float(hi), fx, fy, cx, cy, int(height), int(width))
-    first, starts, c_image, c_pixel, c_winner, fragile = _sweep(P, ranks, a, float(lo), times, pts, fx, fy, cx, cy,
-                                                                int(height), int(width))  # fmt: skip
+    if axis == "rz":
+        from mrcert.core.verification.rotation_events import rz_moves
+
+        start, times, pts, targets, groups, events = rz_moves(P, K, float(lo), float(hi), int(height), int(width))
+    else:
+        times, pts = _events(P, a, float(lo), float(hi), fx, fy, cx, cy, int(height), int(width))
+        start, targets = _translation_moves(P, a, float(lo), times, pts, fx, fy, cx, cy, int(height), int(width))
+        none = np.empty(0, np.int64)
+        groups, events = (np.empty(0), np.empty(0), np.zeros(1, np.int64), none, none), len(times)
+    first, starts, c_image, c_pixel, c_winner, fragile = _sweep(P, ranks, a, float(lo), times, pts, targets, start,
+                                                                *groups, int(height), int(width))  # fmt: skip
     return Enumeration(axis, float(lo), float(hi), starts, first, c_image, c_pixel, c_winner, table,
-                       float(background), int(height), int(width), len(times), fragile)  # fmt: skip
+                       float(background), int(height), int(width), events, fragile)  # fmt: skip
