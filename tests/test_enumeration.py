@@ -257,6 +257,48 @@ def test_rz_bands_that_overlap_or_hold_an_end_are_recorded_and_every_drawn_image
     rz_check(points, colors, rank, lo, lo + 0.2)
 
 
+def test_rz_points_a_unit_in_the_last_place_apart_may_each_be_either_side_while_their_bands_overlap():
+    """Two points one float apart cross each edge within rounding of one another, in an order
+    only the renderer's arithmetic decides: while both bands hold, each point is in either pixel,
+    and every image a dense sampling draws there is one the records allow."""
+    points, colors, rank = tiny_cloud(2, 150)
+    near = points.copy()
+    near[:, 0] = np.nextafter(near[:, 0], np.inf)
+    near[:, 1] = np.nextafter(near[:, 1], -np.inf)
+    points = np.r_[points, near]
+    colors = np.r_[colors, np.random.default_rng(6).uniform(0, 1, (len(near), 3)).astype(np.float32)]
+    rank = np.random.default_rng(7).permutation(len(points))
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", -0.3, 0.3)
+    records = e.fragile
+    pairs = {(a, b): set() for a, b, _, _ in records.tolist()}
+    for a, b, _, q in records.tolist():
+        pairs[(a, b)].add(q)
+    assert max(len(q) for q in pairs.values()) >= 2  # windows where two such points are free at once
+    rz_check(points, colors, rank, -0.3, 0.3)
+
+
+def test_a_column_of_points_on_the_optical_axis_is_resolved_point_by_point_near_rz_0():
+    """Points a scan puts on the camera's principal column (X a rounding error from 0) all cross
+    it within 1e-12 rad of rz = 0, far closer than the arithmetic's error in the column: the
+    renderer's own operations order them, so the enumeration holds one image per crossing and
+    no fragile record (a position held twice is one point), and every pose sampled there draws
+    an enumerated image."""
+    rng = np.random.default_rng(4)
+    n = 40
+    z = rng.uniform(1.0, 3.0, n)
+    y = np.linspace(-0.243, 0.247, n) * z  # no row edge within rounding
+    x = rng.uniform(1e-15, 5e-15, n) * z  # the principal column, up to rounding
+    points = np.column_stack([x, y, z])
+    points = np.r_[points, points]  # each position twice, in other colours: the lower rank shows
+    colors = rng.uniform(0, 1, (2 * n, 3)).astype(np.float32)
+    rank = rng.permutation(2 * n)
+    lo, hi = -2e-11, 2e-11
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", lo, hi)
+    assert len(e.fragile) == 0 and len(e) > n // 2  # each point's own crossing, not one blur of all
+    count, _ = rz_check(points, colors, rank, lo, hi)
+    assert count > 3000
+
+
 def test_the_rotation_s_cos_and_sin_are_within_one_unit_in_the_last_place():
     """The rz bands assume the renderer's float64 cos and sin within a few units in the last
     place of the exact value (mpmath at 40 digits)."""

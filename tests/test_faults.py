@@ -278,7 +278,7 @@ def test_a_resumed_run_counts_its_working_time_not_the_time_it_was_down(checkpoi
     Ctrl-C and resumed after a pause of ``down`` seconds reports at most its start-to-end
     time less the pause; one of whose processes was killed outright (no time logged) falls
     back to start-to-end."""
-    from mrcert.reporting.results_page import run_seconds
+    from mrcert.reporting.page.times import run_seconds
 
     args, down = certify_args(checkpoints["a"], n=2000), 5.0
     proc = start_cli(args, tmp_path, interruptible=True)

@@ -14,10 +14,12 @@ import pytest
 from mrcert.infra.checkpoints import local_checkpoint, read_checkpoint
 from mrcert.infra.runtime import machine
 from mrcert.infra.store import run_artifacts
-from mrcert.reporting import paper_tables, results_page
+from mrcert.reporting import paper_tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
 from mrcert.reporting.experiment_cells import ExperimentCells
+from mrcert.reporting.page import paper_profile
+from mrcert.reporting.page.times import run_seconds
 from mrcert.tasks.gather import GATHERED
 from tests.conftest import run_cli
 from tests.test_tables import SETTINGS, run
@@ -46,7 +48,7 @@ def gather(into: Path, source: Path) -> dict:
 
 
 def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_store):
-    section = results_page.paper_profile_section(index(gpu_store))
+    section = paper_profile.paper_profile_section(index(gpu_store))
     table, times = (" ".join(section[k].split()) for k in ("table", "times"))
     clog = read_log(next((gpu_store / "runs" / "certify").glob("certify.tsv")), ["idx"])
     certified = ((clog.correct == 1) & (clog.radius >= 0.1) & (clog.predict >= 0)).mean()
@@ -60,7 +62,7 @@ def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_
     # stage (12 on the small CNN: the ResNets' two rows are one job here) or models (7: one vanilla
     # model for every axis and one augmented per axis).
     df = index(gpu_store).index.df.set_index("run_id")
-    seconds = {df.loc[r, "tags.mrcert.task"]: results_page.run_seconds(df.loc[r]) for r in df.index}
+    seconds = {df.loc[r, "tags.mrcert.task"]: run_seconds(df.loc[r]) for r in df.index}
     estimate = section["estimate"]
     shown = " ".join(estimate["table"].split())
     for stage, jobs in (("train", 7), ("certify", 12)):
@@ -77,7 +79,7 @@ def test_the_page_shows_the_paper_profiles_runs_with_their_machine_and_time(gpu_
         "attack (attack.k=100, task.sequential=true)",
     ]
     # A store without paper-profile runs gets a section that says how many jobs it lacks.
-    empty = results_page.paper_profile_section(index(gpu_store.parent / "nothing-here"))
+    empty = paper_profile.paper_profile_section(index(gpu_store.parent / "nothing-here"))
     assert empty == {"profile": "paper", "experiment": "reproduce_paper", "missing": 24}
     assert section["missing"] == 0
 

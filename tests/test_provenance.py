@@ -20,7 +20,7 @@ from mrcert.infra.identity import file_identity
 from mrcert.infra.runtime import EVIDENCE_STORE, as_typed, checkout_version
 from mrcert.infra.store import run_artifacts
 from mrcert.reporting.certify_log import read_log
-from mrcert.reporting.results_page import MAKEFILE
+from mrcert.reporting.page.commands import MAKEFILE
 from tests.conftest import ROOT, TINY, compose_cfg, run_cli
 
 RECIPE = [*TINY, "train.epochs=2", "train.batch_size=8"]

@@ -14,10 +14,11 @@ import pandas as pd
 import pytest
 
 from mrcert.__main__ import run_task
-from mrcert.reporting import certify_log, paper_results, paper_tables, results_page
+from mrcert.reporting import certify_log, paper_results, paper_tables
 from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.certify_log import read_log
 from mrcert.reporting.experiment_cells import ExperimentCells
+from mrcert.reporting.page import times as page_times
 from mrcert.reporting.writers import write
 from tests.conftest import TINY, compose_cfg, run_cli
 
@@ -402,7 +403,7 @@ def test_the_pages_time_per_stage_sums_every_run_behind_its_tables(store):
     for table in paper_tables.tables_for(src):  # as task=tables builds them before the page
         table.build(src)
     paper_tables.TABLE3_SEQUENTIAL.build(src)
-    times = results_page.stage_times(src).set_index("stage")
+    times = page_times.stage_times(src).set_index("stage")
 
     def hours(folder: str) -> float:
         (r,) = mlflow.search_runs(
@@ -458,8 +459,8 @@ def test_the_profiles_hours_put_the_sequential_attacks_in_the_fixed_ones_place()
             "run time, summed (h)": [1.0, 2.0, 0.25, 0.5, 8.0, 11.75],
         }
     )  # fmt: skip
-    assert results_page.profile_hours(times, "e") == {"fixed": 3.25, "sequential": 1.75}
-    assert results_page.profile_hours(times.iloc[[0, 1, 2]], "e") is None  # no sequential attack ran
+    assert page_times.profile_hours(times, "e") == {"fixed": 3.25, "sequential": 1.75}
+    assert page_times.profile_hours(times.iloc[[0, 1, 2]], "e") is None  # no sequential attack ran
 
 
 def test_findings_count_what_the_logs_hold():
@@ -469,7 +470,7 @@ def test_findings_count_what_the_logs_hold():
     from types import SimpleNamespace
 
     from mrcert.reporting.cells import Cell
-    from mrcert.reporting.results_page import Job, findings
+    from mrcert.reporting.page.jobs import Job, findings
 
     cfg = compose_cfg([*DEMO, "task=certify"], Path("/tmp"))
     r = float(cfg.motion.radius)
@@ -525,7 +526,7 @@ def test_the_learning_curve_reads_its_experiments_train_runs(tmp_path):
 
 def test_the_learning_curve_table_and_its_summary_follow_the_numbers():
     from mrcert.reporting import learning_curve
-    from mrcert.reporting.results_page import curve_summary
+    from mrcert.reporting.page.curve import curve_summary
 
     models = pd.DataFrame({"validation accuracy": [1.0, 0.975], "test accuracy": [0.817, 0.867]})
     curve = pd.DataFrame(
@@ -687,7 +688,7 @@ def test_the_side_by_side_compares_both_methods_on_the_same_images(tmp_path):
     assert "machine" not in costs  # one machine: the page names it once
     # Every cell the page shows names its run and its model's train run in the page's sources.
     from mrcert.infra.runtime import machine
-    from mrcert.reporting.results_page import side_by_side_section
+    from mrcert.reporting.page.side_by_side import side_by_side_section
 
     runs_by_dir = src.index.df.set_index("tags.mrcert.output_dir")["run_id"]
     cms_train_id, pws_train_id = (runs_by_dir[str(tmp_path / "runs" / n)] for n in ("cms-train", "pws-train"))
@@ -728,11 +729,11 @@ def test_the_page_states_which_test_images_each_tasks_columns_cover():
     """The quick reproduction attacks every 2nd test image (its 8-hour budget) and certifies and
     smooths them all: the page says so; a demo's columns all cover one image in 12."""
     from mrcert.reporting.cells import compose_config
-    from mrcert.reporting.results_page import _shares
+    from mrcert.reporting.page.jobs import columns_share
 
     def shares(experiment):
         tasks = ("certify", "smooth", "attack")
-        return _shares({t: compose_config([f"experiment={experiment}", f"task={t}", "motion=tz"]) for t in tasks})
+        return columns_share({t: compose_config([f"experiment={experiment}", f"task={t}", "motion=tz"]) for t in tasks})
 
     assert shares("reproduce_quick") == (
         "Columns cover certify: every test image; smooth: every test image; attack: one test image in 2."

@@ -32,8 +32,9 @@ from mrcert.reporting.cells import RunIndex
 from mrcert.reporting.experiment_cells import ExperimentCells
 from mrcert.reporting.imaging import contact_sheet
 from mrcert.reporting.overview import method_figure
+from mrcert.reporting.page.jobs import PAPER_ARCH, TRAIN_RUN, base_models, jobs_of
 from mrcert.reporting.plots import save
-from mrcert.reporting.results_page import PAPER_ARCH, TRAIN_RUN, base_models, jobs_of, write_page
+from mrcert.reporting.results_page import write_page
 from mrcert.reporting.writers import as_text, markdown, write
 from mrcert.tasks.evaluation import run_images
 

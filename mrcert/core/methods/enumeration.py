@@ -475,7 +475,8 @@ def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
     least and greatest colour per pixel and channel (the current one included), (C, P) each."""
     pixels = np.unique(records[:, 2])
     current = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu()
-    options = [[table[q] for _, _, p, q in records.tolist() if p == pixel] for pixel in pixels.tolist()]
+    options = [[table[q] for q in dict.fromkeys(q for _, _, p, q in records.tolist() if p == pixel)]
+               for pixel in pixels.tolist()]  # fmt: skip
     low, high = current.clone(), current.clone()
     for j, colours in enumerate(options):
         for colour in colours:

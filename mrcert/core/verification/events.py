@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from mrcert.core.axes import axis_index
+from mrcert.core.verification.float_order import _float, _key, _level
 
 TRANSLATIONS = ("tx", "ty", "tz")
 """The translations, enumerated here."""
@@ -43,8 +44,6 @@ TRANSLATIONS = ("tx", "ty", "tz")
 AXES = (*TRANSLATIONS, "rz")
 """The axes enumerated: the translations here, the rotation about the optical axis in
 :mod:`mrcert.core.verification.rotation_events`."""
-
-SIGN = np.int64(-0x8000000000000000)
 
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
@@ -63,16 +62,6 @@ def _coords(X, Y, Z, axis, t, fx, fy, cx, cy):  # pragma: no cover - compiled
     return zc, uf, vf
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _level(value, size):  # pragma: no cover - compiled
-    """-1 left of (above) the image, ``size`` right of (below) it, else the pixel's column (row)."""
-    if value < 0.0:
-        return -1
-    if value >= size:
-        return size
-    return int(value)
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _classes(P, i, axis, t, fx, fy, cx, cy, height, width):  # pragma: no cover - compiled
     """(front, column level, row level) of point ``i`` at pose ``t``."""
@@ -89,20 +78,6 @@ def pixel_at(P, i, axis, t, fx, fy, cx, cy, height, width):  # pragma: no cover 
     if front == 0 or u < 0 or u >= width or v < 0 or v >= height:
         return -1
     return v * width + u
-
-
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _key(f, buf, ibuf):  # pragma: no cover - compiled
-    """An integer that orders float64 values as they are ordered (both zeros: 0)."""
-    buf[0] = f
-    b = ibuf[0]
-    return b if b >= 0 else -(b & 0x7FFFFFFFFFFFFFFF)
-
-
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _float(k, buf, ibuf):  # pragma: no cover - compiled
-    ibuf[0] = k if k >= 0 else ((-k) | SIGN)
-    return buf[0]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -504,7 +479,8 @@ class Enumeration:
             return np.empty((0, self.colors.shape[1], self.height, self.width), self.colors.dtype)
         options: dict[int, list[int]] = {}
         for _, _, p, q in records.tolist():
-            options.setdefault(p, []).append(q)
+            if q not in options.setdefault(p, []):  # one point recorded by two windows
+                options[p].append(q)
         count = 1
         for points in options.values():
             count *= len(points) + 1
@@ -577,6 +553,13 @@ def enumerate_images(
     if axis == "rz":
         from mrcert.core.verification.rotation_events import rz_moves
 
+        # Points at one position (bit for bit) land together at every pose and at one depth, where
+        # the lowest rank wins: the others never show, and would only blur the records.
+        order = np.argsort(ranks, kind="stable")
+        keys = np.ascontiguousarray(P[order]).view(np.dtype((np.void, 3 * P.itemsize))).ravel()
+        keep = np.sort(order[np.unique(keys, return_index=True)[1]])
+        if len(keep) < len(P):
+            P, table, ranks = np.ascontiguousarray(P[keep]), np.ascontiguousarray(table[keep]), ranks[keep]
         start, times, pts, targets, groups, events = rz_moves(P, K, float(lo), float(hi), int(height), int(width))
     else:
         times, pts = _events(P, a, float(lo), float(hi), fx, fy, cx, cy, int(height), int(width))

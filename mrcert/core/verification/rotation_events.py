@@ -24,14 +24,29 @@ its bands a point's pixel is certain:
   ``k + B`` (closed form, then bisection over the floats), so every pose beyond them is further
   than ``B / 2`` from the edge.
 
+``B`` holds the arithmetic's rounding, which scales with ``|cx|``, while the library's ``c`` and
+``s`` are wrong by a few units in their own last place only. So each band is then narrowed in the
+renderer's own arithmetic (:func:`_narrow`): over a span of poses the library's ``c`` and ``s``
+lie in a small box around ours at the span's ends (the exact ``cos`` and ``sin`` are monotone
+there), every rounding step of the column is monotone in ``c`` and in ``s``, so the column's
+greatest and least computed levels over the span are those at two corners of the box, computed
+exactly. Where they agree the point's pixel is certain over the whole span. Near ``rz = 0`` a
+band shrinks from about ``B / |u'|`` to a few units in the last place of the pose, which orders
+the crossings of points a scan puts on the principal column or row (``X`` or ``Y`` a rounding
+error from 0), all within 1e-12 rad of 0.
+
 A band that no other band overlaps changes nothing the enumeration misses: while it lasts the
 point is in its old pixel or its new one and every other point is certain, so the renderer draws
 either the image before the band or the image after it, and both are enumerated (the point moves
 at the band's end, the first pose certain of the new pixel). Where bands overlap (two points,
 or one point's column and row, ambiguous at once), or a band holds an end of the interval, or a
-point turns back inside one, the images while they last are recorded as fragile: at each pixel a
-band's point may occupy, the colours it may show (that point, or the nearest other point there,
-or the background), exactly as rounding ties are recorded on ``tz``.
+point turns back inside one, the images while they last are recorded as fragile, window by
+window between the bands' ends: in each window only the points whose bands hold all of it may
+be in either pixel (the others are certain there), and at each pixel such a point may occupy the
+record holds the colours it may show (that point, or the nearest other point there, or the
+background), exactly as rounding ties are recorded on ``tz``. Points at one position (bit for
+bit) move as one and the lowest rank among them always wins, so the enumeration keeps that one
+(:func:`mrcert.core.verification.events.enumerate_images`).
 """
 
 from __future__ import annotations
@@ -43,7 +58,7 @@ import numpy as np
 import torch
 
 from mrcert.core.projection import rotations, to_camera
-from mrcert.core.verification.events import _float, _key, _level
+from mrcert.core.verification.float_order import _float, _key, _level
 
 BAND = 2.0**-47
 """A band's half-width in a coordinate, relative to ``fx (|X| + |Y|) / Z + |cx|`` (module docstring)."""
@@ -96,6 +111,83 @@ def _cross(A, B, C, y, p, q, rising, buf, ibuf):  # pragma: no cover - compiled
         else:
             a = m
     return _float(a, buf, ibuf), _float(b, buf, ibuf)
+
+
+SLACK = 4.0 * LIBM_ULPS * 2.0**-52
+"""Relative room around an evaluated ``cos`` or ``sin`` that holds the library's value at every
+pose between two ends (:func:`_hull`): ours and the library's each within :data:`LIBM_ULPS`."""
+
+TINY = 2.0**-1060
+"""Absolute room beside :data:`SLACK`, for sines below the normal floats."""
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _hull(t1, t2):  # pragma: no cover - compiled
+    """Bounds on the ``c`` and signed ``s = sign(t) sin|t|`` the renderer's library computes at
+    any pose in ``[t1, t2]`` (within [-1, 1]): the exact ``cos`` and ``sin`` are monotone there (the
+    cosine's greatest value 1 where the span holds 0), each library's value is within
+    :data:`LIBM_ULPS` of the exact one, so :data:`SLACK` around ours at the ends holds them."""
+    c1, c2 = math.cos(t1), math.cos(t2)
+    c_lo, c_hi = min(c1, c2), max(c1, c2)
+    if t1 <= 0.0 <= t2:
+        c_hi = 1.0
+    s_lo, s_hi = math.sin(t1), math.sin(t2)
+    return (c_lo - SLACK * abs(c_lo) - TINY, c_hi + SLACK * abs(c_hi) + TINY,
+            s_lo - SLACK * abs(s_lo) - TINY, s_hi + SLACK * abs(s_hi) + TINY)  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _corner(X, Y, Z, coord, t1, t2, high, fx, fy, cx, cy, size):  # pragma: no cover - compiled
+    """The greatest (``high``) or least level the renderer can give the point's column (``coord``
+    0) or row at any pose in ``[t1, t2]``: its own float64 operations (the rotation's entries
+    ``c``, ``s``, ``-s``, 0 and 1 in :func:`mrcert.core.projection.to_camera`) at the corner of
+    :func:`_hull` where they are greatest or least -- each rounding step is monotone in ``c`` and
+    in ``s``, in the direction of the sign of the factor each multiplies."""
+    c_lo, c_hi, s_lo, s_hi = _hull(t1, t2)
+    if coord == 0:  # x = c X + s Y + 0 Z
+        c = c_hi if (X >= 0.0) == high else c_lo
+        s = s_hi if (Y >= 0.0) == high else s_lo
+        return _level(fx * ((c * X + s * Y + 0.0 * Z) / Z) + cx, size)
+    c = c_hi if (Y >= 0.0) == high else c_lo  # y = -s X + c Y + 0 Z
+    s = s_hi if (X <= 0.0) == high else s_lo
+    return _level(fy * (((-s) * X + c * Y + 0.0 * Z) / Z) + cy, size)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _narrow(X, Y, Z, coord, a, b, before, after, fx, fy, cx, cy, size, buf, ibuf):  # pragma: no cover
+    """A band ``(a, b)`` of one edge made as narrow as the renderer's own arithmetic allows: the
+    last pose ``a'`` up to which every pose of ``[a, a']`` is certain of the old level, and the
+    first ``b'`` from which every pose of ``[b', b]`` is certain of the new one (:func:`_corner`
+    over those spans; each answer holds for the whole span, so the bisection needs no
+    monotonicity). Inside the band the level is the old one or the new one (the band's own
+    guarantee), so a corner on the right side of the edge is certain of it."""
+    edge = max(before, after)
+    rising = after > before
+
+    def passed(m, at_end):
+        """Past the band's start (``[a, m]`` not certain of the old level) or, ``at_end``, its
+        end (``[m, b]`` certain of the new one); false at the search's left end, true at its right."""
+        if not at_end:
+            if rising:
+                return _corner(X, Y, Z, coord, a, m, True, fx, fy, cx, cy, size) >= edge
+            return _corner(X, Y, Z, coord, a, m, False, fx, fy, cx, cy, size) < edge
+        if rising:
+            return _corner(X, Y, Z, coord, m, b, False, fx, fy, cx, cy, size) >= edge
+        return _corner(X, Y, Z, coord, m, b, True, fx, fy, cx, cy, size) < edge
+
+    def first(lo_k, hi_k, at_end):
+        while hi_k - lo_k > 1:
+            m = lo_k + (hi_k - lo_k) // 2
+            if passed(_float(m, buf, ibuf), at_end):
+                hi_k = m
+            else:
+                lo_k = m
+        return lo_k, hi_k
+
+    ka, kb = _key(a, buf, ibuf), _key(b, buf, ibuf)
+    left = ka if passed(a, False) else first(ka, kb, False)[0]
+    right = kb if not passed(b, True) else first(left, kb, True)[1]
+    return _float(left, buf, ibuf), _float(right, buf, ibuf)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -173,6 +265,11 @@ def _point_bands(P, i, lo, hi, fx, fy, cx, cy, height, width, out, start, fill, 
         new = _coordinate_bands(A, B, C, size, BAND * scale[coord], lo, hi, out[:, :4], count, fill, buf, ibuf)
         if fill:
             out[count:new, 4] = coord
+            for r in range(count, new):
+                before, after = np.int64(out[r, 2]), np.int64(out[r, 3])
+                if before != after:
+                    out[r, 0], out[r, 1] = _narrow(X, Y, Z, coord, out[r, 0], out[r, 1], before, after, fx, fy,
+                                                   cx, cy, size, buf, ibuf)  # fmt: skip
         count = new
     return count
 
@@ -219,8 +316,8 @@ def _pixel(lu, lv, height, width):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover - compiled
-    """From the bands: the moves (pose, point, new pixel) in pose order, and the groups of bands
-    whose images must be recorded (start, end, and per group its points' possible pixels)."""
+    """From the bands: the moves (pose, point, new pixel) in pose order, and the windows whose
+    images must be recorded (start, end, and per window its free points' possible pixels)."""
     n_b = bands.shape[0]
     order = np.argsort(bands[:, 0], kind="mergesort")
     # groups of overlapping bands, by their starts
@@ -250,20 +347,50 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
     times = bands[moves, 1].copy()
     points = owners[moves].copy()
     targets = np.empty(len(moves), np.int64)
-    # candidate pixels of each recorded group's points, from the levels at the group's start
+    # A recorded group is cut at its bands' ends into windows; in each, the points whose bands
+    # hold all of it may be at either level (the others' levels are certain there), so the
+    # window's record lets those points alone be in any of their pixels.
     n_g = len(g_start)
     members = [[np.int64(0)] for _ in range(n_g)]
     for g in range(n_g):
         members[g].clear()
     for r in range(n_b):
-        if g_flag[group[r]]:
-            members[group[r]].append(np.int64(r))
-    c_group, c_point, c_pixel = [0], [0], [0]
-    c_group.clear(), c_point.clear(), c_pixel.clear()
-    g_order = np.argsort(np.array(g_start), kind="mergesort")
+        k = order[r]
+        if g_flag[group[k]]:
+            members[group[k]].append(k)
+    w_start, w_end, w_group = [0.0], [0.0], [0]
+    w_start.clear(), w_end.clear(), w_group.clear()
+    w_rows = [[np.int64(0)]]
+    w_rows.clear()
+    for g in range(n_g):
+        rows = members[g]
+        if not len(rows):
+            continue
+        ends = np.empty(2 * len(rows))
+        for q in range(len(rows)):
+            ends[2 * q], ends[2 * q + 1] = bands[rows[q], 0], bands[rows[q], 1]
+        ends = np.unique(ends)
+        active = [np.int64(0)]
+        active.clear()
+        nxt_row = 0
+        for x in range(len(ends) - 1):
+            left, right = ends[x], ends[x + 1]
+            while nxt_row < len(rows) and bands[rows[nxt_row], 0] <= left:  # rows in order of start
+                active.append(rows[nxt_row])
+                nxt_row += 1
+            active = [k for k in active if bands[k, 1] >= right]
+            if len(active):
+                w_start.append(left)
+                w_end.append(right)
+                w_group.append(g)
+                w_rows.append(active.copy())
+    # candidate pixels of each window's points, from the levels at the window's start
+    c_window, c_point, c_pixel = [0], [0], [0]
+    c_window.clear(), c_point.clear(), c_pixel.clear()
+    n_w = len(w_start)
     j = 0
-    for gi in range(n_g + 1):
-        t_next = np.inf if gi == n_g else g_start[g_order[gi]]
+    for w in range(n_w + 1):
+        t_next = np.inf if w == n_w else w_start[w]
         while j < len(moves) and times[j] <= t_next:
             k = moves[j]
             i = owners[k]
@@ -273,12 +400,9 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
                 lv[i] = np.int64(bands[k, 3])
             targets[j] = _pixel(lu[i], lv[i], height, width)
             j += 1
-        if gi == n_g:
+        if w == n_w:
             break
-        g = g_order[gi]
-        if not g_flag[g]:
-            continue
-        rows = members[g]
+        rows = w_rows[w]
         seen = [np.int64(0)]
         seen.clear()
         for k in rows:
@@ -289,7 +413,11 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
             us, vs = [lu[i]], [lv[i]]
             for k2 in rows:
                 if owners[k2] == i:
-                    for level in (np.int64(bands[k2, 2]), np.int64(bands[k2, 3])):
+                    before, after = np.int64(bands[k2, 2]), np.int64(bands[k2, 3])
+                    # a band through an extremum that comes back (before == after) touched a
+                    # level on one side or the other
+                    wide = 1 if before == after else 0
+                    for level in range(min(before, after) - wide, max(before, after) + wide + 1):
                         if bands[k2, 4] == 0 and level not in us:
                             us.append(level)
                         if bands[k2, 4] == 1 and level not in vs:
@@ -298,16 +426,16 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
                 for v in vs:
                     p = _pixel(u, v, height, width)
                     if p >= 0:
-                        c_group.append(g)
+                        c_window.append(w)
                         c_point.append(i)
                         c_pixel.append(p)
-    return (times, points, targets, np.array(g_start), np.array(g_end), np.array(g_flag),
-            np.array(c_group, np.int64), np.array(c_point, np.int64), np.array(c_pixel, np.int64))  # fmt: skip
+    return (times, points, targets, np.array(w_start), np.array(w_end), np.array(c_window, np.int64),
+            np.array(c_point, np.int64), np.array(c_pixel, np.int64))  # fmt: skip
 
 
 def rz_moves(P: np.ndarray, K, lo: float, hi: float, height: int, width: int):
     """What the sweep needs on ``rz`` over ``[lo, hi]``: each point's pixel at ``lo`` (-1: none),
-    the moves (pose, point, new pixel) in pose order, the recorded groups (start and end pose,
+    the moves (pose, point, new pixel) in pose order, the recorded windows (start and end pose,
     offsets into the rows, and per row a point and a pixel it may occupy), and the bands' count."""
     if not -1.0 <= lo <= hi <= 1.0:  # cos >= 0.5: the rotation's 1 is exact, and one extremum at most
         raise ValueError(f"an rz interval within [-1, 1] rad is enumerated, got [{lo}, {hi}]")
@@ -321,10 +449,9 @@ def rz_moves(P: np.ndarray, K, lo: float, hi: float, height: int, width: int):
     _start_levels(P, R, fx, fy, cx, cy, height, width, lu, lv)
     start = np.where((lu >= 0) & (lu < width) & (lv >= 0) & (lv < height), lv * width + lu, -1)
     bands, owners = _bands(P, float(lo), float(hi), fx, fy, cx, cy, int(height), int(width))
-    times, points, targets, g_start, g_end, g_flag, c_group, c_point, c_pixel = _timeline(
+    times, points, targets, w_start, w_end, c_window, c_point, c_pixel = _timeline(
         bands, owners, float(lo), float(hi), lu, lv, int(height), int(width)
     )
-    recorded = np.nonzero(g_flag)[0]
-    rows = np.bincount(c_group, minlength=len(g_start))[recorded]
-    groups = (g_start[recorded], g_end[recorded], np.r_[0, np.cumsum(rows)].astype(np.int64), c_point, c_pixel)
+    rows = np.bincount(c_window, minlength=len(w_start))
+    groups = (w_start, w_end, np.r_[0, np.cumsum(rows)].astype(np.int64), c_point, c_pixel)
     return start.astype(np.int64), times, points, targets, groups, len(bands)
