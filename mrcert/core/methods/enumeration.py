@@ -55,7 +55,7 @@ from mrcert.core.methods.base import (
     WholeInterval,
 )
 from mrcert.core.models import class_margins, predicted
-from mrcert.core.verification.events import AXES, Enumeration, enumerate_images
+from mrcert.core.verification.events import AXES, Enumeration, enumerate_images, record_options
 from mrcert.core.verification.incremental import IncrementalNetwork
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import ConfigError, MrcertError
@@ -473,10 +473,10 @@ class _Run:
 def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
     """The fragile records' pixels, the colours each may take besides its current one, and the
     least and greatest colour per pixel and channel (the current one included), (C, P) each."""
-    pixels = np.unique(records[:, 2])
+    allowed = record_options(records)
+    pixels = np.array(sorted(allowed), np.int64)
     current = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu()
-    options = [[table[q] for q in dict.fromkeys(q for _, _, p, q in records.tolist() if p == pixel)]
-               for pixel in pixels.tolist()]  # fmt: skip
+    options = [[table[q] for q in allowed[pixel]] for pixel in pixels.tolist()]
     low, high = current.clone(), current.clone()
     for j, colours in enumerate(options):
         for colour in colours:

@@ -423,6 +423,16 @@ def _images(first, c_image, c_pixel, c_winner, table, start, stop, out):  # prag
                 image[ch, p] = table[w, ch]
 
 
+def record_options(records: np.ndarray) -> dict[int, list[int]]:
+    """Per pixel of fragile ``records`` (from, to, pixel, point), in order of first record, the
+    points (-1: the background) they allow there, each once (two windows may record one)."""
+    options: dict[int, list[int]] = {}
+    for _, _, p, q in records.tolist():
+        if q not in options.setdefault(p, []):
+            options[p].append(q)
+    return options
+
+
 @dataclass
 class Enumeration:
     """The images along ``[lo, hi]`` on ``axis`` (module docstring)."""
@@ -477,10 +487,7 @@ class Enumeration:
         records = self.alternates(k, k + 1)
         if not len(records):
             return np.empty((0, self.colors.shape[1], self.height, self.width), self.colors.dtype)
-        options: dict[int, list[int]] = {}
-        for _, _, p, q in records.tolist():
-            if q not in options.setdefault(p, []):  # one point recorded by two windows
-                options[p].append(q)
+        options = record_options(records)
         count = 1
         for points in options.values():
             count *= len(points) + 1

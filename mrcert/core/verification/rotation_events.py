@@ -322,22 +322,19 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
     order = np.argsort(bands[:, 0], kind="mergesort")
     # groups of overlapping bands, by their starts
     group = np.empty(n_b, np.int64)
-    g_start, g_end, g_flag = [0.0], [0.0], [False]
-    g_start.clear(), g_end.clear(), g_flag.clear()
+    g_flag = [False]  # per group, whether it is recorded
+    g_flag.clear()
     reach = -np.inf
     for r in range(n_b):
         k = order[r]
         a, b = bands[k, 0], bands[k, 1]
         flagged = a < lo or b > hi or bands[k, 2] == bands[k, 3]
-        if len(g_start) and a < reach:
-            g = len(g_start) - 1
-            g_end[g] = max(g_end[g], b)
+        if len(g_flag) and a < reach:
+            g = len(g_flag) - 1
             g_flag[g] = True  # two bands at once
         else:
-            g_start.append(a)
-            g_end.append(b)
             g_flag.append(flagged)
-            g = len(g_start) - 1
+            g = len(g_flag) - 1
         g_flag[g] = g_flag[g] or flagged
         group[k] = g
         reach = max(reach, b)
@@ -350,7 +347,7 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
     # A recorded group is cut at its bands' ends into windows; in each, the points whose bands
     # hold all of it may be at either level (the others' levels are certain there), so the
     # window's record lets those points alone be in any of their pixels.
-    n_g = len(g_start)
+    n_g = len(g_flag)
     members = [[np.int64(0)] for _ in range(n_g)]
     for g in range(n_g):
         members[g].clear()
@@ -358,8 +355,8 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
         k = order[r]
         if g_flag[group[k]]:
             members[group[k]].append(k)
-    w_start, w_end, w_group = [0.0], [0.0], [0]
-    w_start.clear(), w_end.clear(), w_group.clear()
+    w_start, w_end = [0.0], [0.0]
+    w_start.clear(), w_end.clear()
     w_rows = [[np.int64(0)]]
     w_rows.clear()
     for g in range(n_g):
@@ -382,7 +379,6 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
             if len(active):
                 w_start.append(left)
                 w_end.append(right)
-                w_group.append(g)
                 w_rows.append(active.copy())
     # candidate pixels of each window's points, from the levels at the window's start
     c_window, c_point, c_pixel = [0], [0], [0]
