@@ -253,6 +253,34 @@ def test_ctrl_c_in_the_middle_of_recording_a_row_keeps_the_row_and_the_time(chec
     assert run.info.status == "FINISHED" and read_log(log)["idx"].tolist() == [0, 1, 2, 3]
 
 
+def test_ctrl_c_landing_inside_a_compiled_kernel_is_still_an_interruption(checkpoints, tmp_path, monkeypatch):
+    """An interrupt that arrives while a numba kernel runs reaches Python as a SystemError whose
+    cause is the KeyboardInterrupt: the run is closed KILLED (not FAILED), the interrupt goes on
+    as Ctrl-C, and the same command resumes the run."""
+    import mrcert.data.samples as samples
+
+    real, calls = samples.project, []
+
+    def interrupted_in_a_kernel(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as stop:
+                raise SystemError("CPUDispatcher(<function _block_bounds>) returned a result with an exception set") from stop
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(samples, "project", interrupted_in_a_kernel)
+    with pytest.raises(KeyboardInterrupt):
+        run_task(compose_cfg(certify_args(checkpoints["a"], n=40), tmp_path), tmp_path / "runs" / "certify")
+    monkeypatch.undo()
+    (run,) = store_runs(tmp_path)
+    assert run.info.status == "KILLED" and "mrcert.failure" not in run.data.tags
+    run_task(compose_cfg(certify_args(checkpoints["a"], n=40), tmp_path), tmp_path / "runs" / "again")
+    (run,) = store_runs(tmp_path)
+    assert run.info.status == "FINISHED" and read_log(tmp_path / "runs" / "certify" / "certify.tsv")["idx"].tolist() == [0, 1, 2, 3]
+
+
 def test_a_store_locked_by_a_stopped_process_is_one_line(tmp_path):
     """Another process holding the SQLite store's write lock (suspended mid-write): one line
     naming the store and what to do, no traceback, no run."""

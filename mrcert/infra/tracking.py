@@ -36,6 +36,18 @@ log = logging.getLogger(__name__)
 MAX_PARAM_CHARS = 6000
 
 
+def interruption(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C (or SIGTERM) behind ``exc``, or None. An interrupt that lands inside compiled
+    code (a numba kernel) reaches Python as a ``SystemError`` whose cause is the interrupt."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def flatten(data: Any) -> dict[str, str]:
     """Nested dicts and lists as ``{"a.b.0": "value"}`` strings, for MLflow params."""
     return {k: str(v)[:MAX_PARAM_CHARS] for k, v in identity.flatten(data).items()}
@@ -194,11 +206,14 @@ def task_run(cfg: DictConfig, output_dir: Path, ident: RunIdentity, decision: De
                 task = TASKS.of(cfg)
                 with uninterrupted():
                     mlflow.set_tags(seals(output_dir, sealed_files(str(cfg.task.name), task.log)))
-            except KeyboardInterrupt:
-                with uninterrupted():
-                    mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
-                raise
             except BaseException as exc:
+                stop = interruption(exc)
+                if stop is not None:
+                    with uninterrupted():
+                        mlflow.end_run("KILLED")  # interrupted, not wrong: the next identical command resumes it
+                    if stop is exc:
+                        raise
+                    raise stop from None  # as Ctrl-C, wherever it landed
                 with contextlib.suppress(Exception):  # the reason, in the UI (never hiding the error itself)
                     mlflow.set_tag("mrcert.failure", f"{type(exc).__name__}: {exc}"[:5000])
                 mlflow.end_run("FAILED")
