@@ -267,7 +267,9 @@ def test_ctrl_c_landing_inside_a_compiled_kernel_is_still_an_interruption(checkp
             try:
                 raise KeyboardInterrupt
             except KeyboardInterrupt as stop:
-                raise SystemError("CPUDispatcher(<function _block_bounds>) returned a result with an exception set") from stop
+                raise SystemError(
+                    "CPUDispatcher(<function _block_bounds>) returned a result with an exception set"
+                ) from stop
         return real(*args, **kwargs)
 
     monkeypatch.setattr(samples, "project", interrupted_in_a_kernel)
@@ -278,7 +280,8 @@ def test_ctrl_c_landing_inside_a_compiled_kernel_is_still_an_interruption(checkp
     assert run.info.status == "KILLED" and "mrcert.failure" not in run.data.tags
     run_task(compose_cfg(certify_args(checkpoints["a"], n=40), tmp_path), tmp_path / "runs" / "again")
     (run,) = store_runs(tmp_path)
-    assert run.info.status == "FINISHED" and read_log(tmp_path / "runs" / "certify" / "certify.tsv")["idx"].tolist() == [0, 1, 2, 3]
+    log = read_log(tmp_path / "runs" / "certify" / "certify.tsv")
+    assert run.info.status == "FINISHED" and log["idx"].tolist() == [0, 1, 2, 3]
 
 
 def test_a_store_locked_by_a_stopped_process_is_one_line(tmp_path):

@@ -6,6 +6,8 @@ the bound computed afresh."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -13,7 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from mrcert.core.methods.base import BaseClassifier
-from mrcert.core.methods.enumeration import ImageEnumeration
+from mrcert.core.methods.enumeration import VARIANTS, ImageEnumeration, _groups, _low_variants
 from mrcert.core.models import Normalize, SmallCNN, class_margins
 from mrcert.core.verification.events import enumerate_images
 from mrcert.core.verification.incremental import IncrementalNetwork
@@ -260,3 +262,63 @@ def test_images_rounding_may_render_are_decided_alike_incrementally_and_whole():
         assert mine.details["outcome"] == whole.details["outcome"], seed
         outcomes.append(mine.details["outcome"])
     assert {"verified", "unknown"} <= set(outcomes)  # a variant classified otherwise: unknown, on both paths
+
+
+class Local(nn.Module):
+    """Two 3x3 convolutions with ReLUs and an affine head: a pixel reaches its 5x5 neighbourhood."""
+
+    def __init__(self):
+        super().__init__()
+        self.body = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.Conv2d(8, 8, 3, padding=1), nn.ReLU())
+        self.head = nn.Linear(8, 4)
+
+    def forward(self, x):
+        return self.head(torch.flatten(F.adaptive_avg_pool2d(self.body(x), 1), 1))
+
+
+@pytest.mark.parametrize("name", ["local", "residual"])
+def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_below_the_margin(name):
+    """Fragile pixels (neighbours and loners far apart, each its colour or one of two others):
+    grouped by the windows of the affine tail's first layer they reach, the images whose margin is
+    at most a threshold are found from one change of the logits per group's image, and they are
+    exactly the images (of all 3^7 - 1, each classified whole) below that threshold."""
+    torch.manual_seed(4)
+    model = randomised(Local(), 4) if name == "local" else models()[name]
+    e = enumeration(3)
+    image = torch.from_numpy(e.images(len(e) // 2, len(e) // 2 + 1))
+    pixels = np.array([5 * W + 5, 6 * W + 5, 7 * W + 6, 12 * W + 20, 12 * W + 21, 21 * W + 36, 2 * W + 38])
+    g = torch.Generator().manual_seed(1)
+    options = [[torch.rand(3, generator=g), torch.rand(3, generator=g)] for _ in pixels]
+    net = IncrementalNetwork.of(model)
+    with torch.inference_mode():
+        logits = net.start(image)[0].clone()
+        c = int(logits.argmax())
+        groups = _groups(net, pixels, options)
+        assert 1 < len(groups) < len(pixels)  # neighbours share a group, loners do not
+        changes = [torch.cat([net.delta(where, values) for where, values in choices]) for choices in groups]
+        every = []  # every image the pixels allow, classified whole
+        for combo in itertools.product(*([None, *o] for o in options)):
+            if any(colour is not None for colour in combo):
+                variant = image.clone()
+                for p, colour in zip(pixels, combo, strict=True):
+                    if colour is not None:
+                        variant.view(3, -1)[:, p] = colour
+                every.append(variant)
+        margins = np.sort(margin(model, torch.cat(every), c))
+    rounding = 1e-6 * max(1.0, float(np.abs(logits).max()))  # float32 sums in another order
+    gaps = np.nonzero(np.diff(margins) > 2 * rounding)[0] + 1  # thresholds far from any margin
+    for least in (1, 7, 40):
+        count = int(gaps[gaps >= least][0])
+        assert count <= VARIANTS
+        scale = float(margins[count - 1] + margins[count]) / 2
+        found = _low_variants(logits, changes, c, scale)
+        assert found is not None and len(found) == count, (count, found)
+        with torch.inference_mode():
+            for combo in found:
+                variant = image.clone()
+                for choices, r in zip(groups, combo, strict=True):
+                    if r >= 0:
+                        where, values = choices[r]
+                        variant.view(3, -1)[:, where] = values
+                assert margin(model, variant, c)[0] <= scale + rounding
+    assert _low_variants(logits, changes, c, float(margins[70])) is None  # more than VARIANTS

@@ -12,9 +12,10 @@ interval is therefore decided by those images alone, and this method decides it 
   what its changed pixels reach, up to :data:`LANES` pieces of the interval at once; a network
   whose graph it cannot follow is classified image by image, in batches. A margin within float
   rounding of 0 is classified again on the image alone;
-* where rounding may hand a pixel to a point of near-equal depth (tz), every image those records
-  allow is decided too: by an interval bound over the few pixels, else by classifying each
-  (with an affine tail, as the nominal logits plus a change kept near the pixels);
+* where rounding may hand a pixel to another point (tz: near-equal depths; rz: a point within
+  rounding of a pixel edge), every image those records allow is decided too: by an interval
+  bound over the few pixels, else by classifying each (with an affine tail, as the nominal
+  logits plus one change per group of pixels whose windows meet, :func:`_groups`);
 * optionally (``run_images`` below the number of images), a longer run first gets its exact hull
   -- per pixel and channel, the least and the greatest value the run's images take -- and bound
   propagation (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over
@@ -65,6 +66,10 @@ SPREAD = 33
 
 VARIANTS = 64
 """The most images rounding may render beside an enumerated one that are classified (then: unknown)."""
+
+GROUP_VARIANTS = 1024
+"""An affine tail: the most such images of one group of fragile pixels near one another whose
+changes of the logits are computed (:func:`_groups`; then: unknown)."""
 
 LANES = 32
 """Pieces of the interval followed at once by the incremental classifier."""
@@ -308,13 +313,14 @@ class _Run:
             net.start(torch.from_numpy(e.images(u, u + 1)))
             # a record closes where its pixel changes, so the pixels keep their colour over [u, v)
             pixels, options, low, high = _allowed(net, here, table)
-            variants = _combinations(pixels, options) or []  # none: too many to classify
-            # What the bound and the variants read, while the image is whole: the same windows at
-            # every later image, so only the changes inside what they depend on are followed.
+            if not len(pixels):
+                continue
+            groups = _groups(net, pixels, options)  # None: too many to classify
+            # What the bound reads, while the image is whole: the same windows at every later
+            # image, so only the changes inside what it depends on are followed; the variants'
+            # changes join it (from the whole image then) at the first image the bound leaves open.
             net.offsets(pixels, low, high, c)
-            for where, values in variants:
-                net.delta(where, values)
-            reach = net.reach()
+            reach, changes = net.reach(), None
             for k in range(u, v):
                 if k > u:
                     lo, hi = spans[k - a], spans[k - a + 1]
@@ -327,12 +333,22 @@ class _Run:
                 least = logits[c] - logits + net.offsets(pixels, low, high, c)
                 least[c] = torch.inf
                 if float(least.min()) <= scale:
-                    if not variants:
+                    if groups is None:
                         return False
-                    for where, values in variants:
-                        moved = (logits + net.delta(where, values)[0]).float().cpu()[None]
-                        self.classified += 1
-                        if float(self.margins(moved, c)[0]) <= scale and self.variant_alone(e, k, where, values, c) < 0:
+                    if changes is None:  # each group's images classified (once per window)
+                        net.start(torch.from_numpy(e.images(k, k + 1)))
+                        net.offsets(pixels, low, high, c)
+                        self.classified += sum(len(choices) for choices in groups)
+                    changes = [torch.cat([net.delta(w, v) for w, v in choices]) for choices in groups]
+                    reach = net.reach()
+                    low_ones = _low_variants(logits, changes, c, scale)
+                    if low_ones is None:
+                        return False
+                    for combo in low_ones:
+                        picked = [groups[g][r] for g, r in enumerate(combo) if r >= 0]
+                        where = np.concatenate([w for w, _ in picked])
+                        values = torch.cat([v for _, v in picked], 1)
+                        if self.variant_alone(e, k, where, values, c) < 0:
                             return False
         return True
 
@@ -421,6 +437,8 @@ class _Run:
         over them all, else each classified (at most :data:`VARIANTS`)."""
         net = self.incremental
         pixels, options, low, high = _allowed(net, records, table)
+        if not len(pixels):
+            return True
         scale = ROUNDING * max(1.0, float(logits.abs().max()))
         if net.bound(pixels, low, high, c) > scale:
             return True
@@ -471,12 +489,24 @@ class _Run:
 
 
 def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
-    """The fragile records' pixels, the colours each may take besides its current one, and the
-    least and greatest colour per pixel and channel (the current one included), (C, P) each."""
+    """The fragile records' pixels, the colours each may take besides its current one (each
+    colour once: a point of the current colour, or two of one colour, make no other image), and
+    the least and greatest colour per pixel and channel (the current one included), (C, P) each.
+    A pixel whose records allow its current colour alone is left out."""
     allowed = record_options(records)
     pixels = np.array(sorted(allowed), np.int64)
     current = net.values[0].reshape(net.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].cpu()
-    options = [[table[q] for q in allowed[pixel]] for pixel in pixels.tolist()]
+    keep, options = [], []
+    for j, pixel in enumerate(pixels.tolist()):
+        colours: list[torch.Tensor] = []
+        for q in allowed[pixel]:
+            colour = table[q].to(current.dtype)
+            if not torch.equal(colour, current[:, j]) and not any(torch.equal(colour, o) for o in colours):
+                colours.append(colour)
+        if colours:
+            keep.append(j)
+            options.append(colours)
+    pixels, current = pixels[keep], current[:, keep]
     low, high = current.clone(), current.clone()
     for j, colours in enumerate(options):
         for colour in colours:
@@ -484,11 +514,74 @@ def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
     return pixels, options, low, high
 
 
-def _combinations(pixels: np.ndarray, options: list) -> list[tuple[np.ndarray, torch.Tensor]] | None:
+def _groups(net: IncrementalNetwork, pixels: np.ndarray, options: list) -> list[list] | None:
+    """The fragile pixels in groups that reach disjoint boxes of the affine tail's first layer,
+    each group's images beside the current one as (pixels changed, their colours (C, n)) (as
+    :func:`_combinations`). A change of one group leaves the values the others reach as they are,
+    so (the tail being affine) the logits of any image the records allow are the current ones
+    plus one change per group. None where a group has more than :data:`GROUP_VARIANTS` images."""
+    boxes = [net.boundary_box(pixels[j : j + 1]) for j in range(len(pixels))]
+    parent = list(range(len(pixels)))
+
+    def root(j: int) -> int:
+        while parent[j] != j:
+            j = parent[j]
+        return j
+
+    for i, j in itertools.combinations(range(len(pixels)), 2):
+        a, b = boxes[i], boxes[j]
+        if a is not None and b is not None and a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]:
+            parent[root(i)] = root(j)
+    members: dict[int, list[int]] = {}
+    for j in range(len(pixels)):
+        members.setdefault(root(j), []).append(j)
+    groups = []
+    for js in members.values():
+        choices = _combinations(pixels[js], [options[j] for j in js], GROUP_VARIANTS)
+        if choices is None:
+            return None
+        groups.append(choices)
+    return groups
+
+
+def _low_variants(logits: torch.Tensor, changes: list[torch.Tensor], c: int, scale: float) -> list[tuple] | None:
+    """The images, one choice per group (row ``r`` of its changes, -1 for none; not all none),
+    whose margin -- the logits (K,) plus the chosen rows of each group's changes (n_g, K) -- is at
+    most ``scale``: found group by group, a partial choice dropped as soon as even the least
+    changes of the groups left keep every class's margin above ``scale``. None where there are
+    more than :data:`VARIANTS`."""
+    base = (logits[c] - logits).double().cpu()
+    rows = [torch.cat([torch.zeros(1, len(base), dtype=torch.float64), (d[:, c : c + 1] - d).double().cpu()])
+            for d in changes]  # fmt: skip
+    rest = [torch.zeros(len(base), dtype=torch.float64)]
+    for m in reversed(rows):
+        rest.insert(0, rest[0] + m.min(0).values)
+    found: set[tuple] = set()
+    for j in range(len(base)):
+        if j == c or float(base[j] + rest[0][j]) > scale:
+            continue
+        stack = [(0, float(base[j]), ())]
+        while stack:
+            g, total, combo = stack.pop()
+            if g == len(rows):
+                if any(r > 0 for r in combo):
+                    found.add(tuple(r - 1 for r in combo))
+                    if len(found) > VARIANTS:
+                        return None
+                continue
+            for r in range(len(rows[g])):
+                if total + float(rows[g][r, j] + rest[g + 1][j]) <= scale:
+                    stack.append((g + 1, total + float(rows[g][r, j]), (*combo, r)))
+    return sorted(found)
+
+
+def _combinations(
+    pixels: np.ndarray, options: list, limit: int = VARIANTS
+) -> list[tuple[np.ndarray, torch.Tensor]] | None:
     """Every image the records allow beside the current one, as (pixels changed, their colours
     (C, n)): each pixel its current colour or one of its options, not all current; None where
-    there are more than :data:`VARIANTS`."""
-    if float(np.prod([len(o) + 1 for o in options], dtype=float)) - 1 > VARIANTS:
+    there are more than ``limit``."""
+    if float(np.prod([len(o) + 1 for o in options], dtype=float)) - 1 > limit:
         return None
     out = []
     for combo in itertools.product(*([None, *o] for o in options)):

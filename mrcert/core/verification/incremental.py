@@ -361,6 +361,26 @@ class IncrementalNetwork:
                     _widen(need, i, need[k])
         return need.get(0)
 
+    def boundary_box(self, pixels: np.ndarray) -> tuple[int, int, int, int] | None:
+        """The box of the affine tail's first layer (the boundary) that a change of the current
+        image at ``pixels`` can reach (None: none of it); the values outside it depend on none of
+        those pixels. Known once an image is set."""
+        W = self.values[0].shape[3]
+        rows, cols = pixels // W, pixels % W
+        regions: list[tuple[int, int, int, int] | None] = [None] * len(self.nodes)
+        regions[0] = (int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1)
+        for k, node in enumerate(self.nodes):
+            changed = [regions[i] for i in node.inputs if regions[i] is not None]
+            if k == 0 or not changed or not node.spatial:
+                continue
+            box = _union(changed)
+            if node.kind in ("map", "add"):
+                regions[k] = box
+            else:
+                reached = self._reached(k, node, box)
+                regions[k] = None if reached is None else reached[0]
+        return regions[self.boundary] if self.boundary is not None else None
+
     def bound(self, pixels: np.ndarray, low: torch.Tensor, high: torch.Tensor, c: int) -> float:
         """A lower bound (interval arithmetic, float32) of ``y_c - max_{j != c} y_j`` over every
         image equal to the current one but at ``pixels``, where it lies in ``[low, high]``
