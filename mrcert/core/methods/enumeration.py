@@ -315,12 +315,11 @@ class _Run:
             pixels, options, low, high = _allowed(net, here, table)
             if not len(pixels):
                 continue
-            groups = _groups(net, pixels, options)  # None: too many to classify
             # What the bound reads, while the image is whole: the same windows at every later
             # image, so only the changes inside what it depends on are followed; the variants'
             # changes join it (from the whole image then) at the first image the bound leaves open.
             net.offsets(pixels, low, high, c)
-            reach, changes = net.reach(), None
+            reach, groups = net.reach(), None
             for k in range(u, v):
                 if k > u:
                     lo, hi = spans[k - a], spans[k - a + 1]
@@ -333,9 +332,10 @@ class _Run:
                 least = logits[c] - logits + net.offsets(pixels, low, high, c)
                 least[c] = torch.inf
                 if float(least.min()) <= scale:
-                    if groups is None:
-                        return False
-                    if changes is None:  # each group's images classified (once per window)
+                    if groups is None:  # each group's images classified (once per window)
+                        groups = _groups(net, pixels, options)
+                        if groups is None:  # too many to classify
+                            return False
                         net.start(torch.from_numpy(e.images(k, k + 1)))
                         net.offsets(pixels, low, high, c)
                         self.classified += sum(len(choices) for choices in groups)
