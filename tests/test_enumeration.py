@@ -11,9 +11,10 @@ import pytest
 import torch
 
 from mrcert.core.methods.base import BaseClassifier
-from mrcert.core.methods.enumeration import ImageEnumeration
+from mrcert.core.methods.enumeration import ImageEnumeration, _point_groups
 from mrcert.core.projection import project
 from mrcert.core.verification.events import enumerate_images
+from mrcert.core.verification.incremental import IncrementalNetwork
 from mrcert.data.samples import TestSample
 from mrcert.errors import ConfigError
 from tests.conftest import PAPER_K, compose_cfg
@@ -233,7 +234,37 @@ def rz_check(points, colors, rank, lo: float, hi: float) -> tuple[int, int]:
         assert variants is not None and any(np.array_equal(v, drawn[j]) for v in variants), (
             f"rz={poses[j]!r} draws an image the enumeration does not hold (image {k[j]})"
         )
+        assert point_by_point(e, int(k[j]), drawn[j]), f"rz={poses[j]!r}: not a window's image, point by point"
     return len(poses), int(in_band.sum())
+
+
+def point_by_point(e, k: int, drawn: np.ndarray) -> bool:
+    """Whether ``drawn`` is an image one of the windows holding image ``k`` allows, point by point
+    (:func:`mrcert.core.methods.enumeration._point_groups`, the images the method classifies on
+    rz): image ``k`` with each group of free points' pixels as it is or as one of its choices sets them."""
+    torch.manual_seed(0)
+    model = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3, padding=1), torch.nn.ReLU(), torch.nn.AdaptiveAvgPool2d(1),
+                                torch.nn.Flatten(), torch.nn.Linear(4, 3)).eval()  # fmt: skip
+    net = IncrementalNetwork.of(model)
+    image = e.images(k, k + 1)
+    with torch.inference_mode():
+        net.start(torch.from_numpy(image))
+    table = torch.from_numpy(e.table())
+    current, want = image[0].reshape(3, -1), drawn.reshape(3, -1)
+    for w in e.windows_at(k):
+        groups = _point_groups(net, *e.free_points(w), table)
+        assert groups is not None
+        covered = np.zeros(current.shape[1], bool)
+        ok = True
+        for choices in groups:
+            where = choices[0][0]
+            covered[where] = True
+            ok &= np.array_equal(want[:, where], current[:, where]) or any(
+                np.array_equal(want[:, where], values.numpy()) for _, values in choices
+            )
+        if ok and np.array_equal(want[:, ~covered], current[:, ~covered]):
+            return True
+    return False
 
 
 @pytest.mark.parametrize("seed", [0, 1])

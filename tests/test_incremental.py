@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from mrcert.core.methods.base import BaseClassifier
-from mrcert.core.methods.enumeration import VARIANTS, ImageEnumeration, _groups, _low_variants
+from mrcert.core.methods.enumeration import VARIANTS, ImageEnumeration, _groups, _low_variants, _point_groups
 from mrcert.core.models import Normalize, SmallCNN, class_margins
 from mrcert.core.verification.events import enumerate_images
 from mrcert.core.verification.incremental import IncrementalNetwork
@@ -322,3 +322,50 @@ def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_b
                         variant.view(3, -1)[:, where] = values
                 assert margin(model, variant, c)[0] <= scale + rounding
     assert _low_variants(logits, changes, c, float(margins[70])) is None  # more than VARIANTS
+
+
+def test_a_window_s_images_found_point_by_point_are_exactly_those_of_every_choice_of_its_points():
+    """Free points, each in one of two or three pixels or off the image, some sharing pixels, and
+    per pixel the points that may show there nearest first (a point held throughout, or the
+    background): the images found point by point, equal ones kept once and grouped by the
+    windows their pixels reach, are exactly the distinct images of every choice of every point
+    (brute force), each pixel showing the nearest point there."""
+    torch.manual_seed(4)
+    model = randomised(Local(), 4)
+    e = enumeration(3)
+    image = torch.from_numpy(e.images(len(e) // 2, len(e) // 2 + 1))
+    near, far = [5 * W + 5, 5 * W + 6, 6 * W + 5, 6 * W + 6], [18 * W + 30, 19 * W + 30]
+    pixels = {0: [near[0], near[1]], 1: [near[1], near[3]], 2: [near[2], -1], 3: [near[0], near[2], near[3]],
+              4: [near[3], near[1]], 5: [far[0], far[1]], 6: [far[1], -1], 7: [-1, -1]}  # fmt: skip
+    rng = np.random.default_rng(2)
+    ranked = {}
+    for p in near + far:
+        there = [q for q, ps in pixels.items() if p in ps]
+        held = int(rng.choice([-1, 10 + p % 7]))  # the point there throughout, or the background
+        order = list(rng.permutation([*there, held]))
+        if held == -1:  # the background is the farthest
+            order.remove(-1)
+            order.append(-1)
+        ranked[p] = [int(q) for q in order]
+    table = torch.from_numpy(rng.uniform(0, 1, (30, 3)).astype(np.float32))
+    net = IncrementalNetwork.of(model)
+    with torch.inference_mode():
+        net.start(image)
+        groups = _point_groups(net, pixels, ranked, table)
+    assert groups is not None and len(groups) == 2  # the near pixels and the far ones
+    brute = set()
+    for combo in itertools.product(*pixels.values()):
+        chosen = dict(zip(pixels, combo, strict=True))
+        variant = image.clone().view(3, -1)
+        for p, order in ranked.items():
+            variant[:, p] = table[next(q for q in order if q not in pixels or chosen[q] == p)]
+        brute.add(variant.numpy().tobytes())
+    found = set()
+    for picked in itertools.product(*groups):
+        variant = image.clone().view(3, -1)
+        for where, values in picked:
+            variant[:, torch.from_numpy(where)] = values
+        found.add(variant.numpy().tobytes())
+    assert found == brute and len(brute) > 8
+    assert np.prod([len(choices) for choices in groups]) == len(brute)  # each image once
+    assert sum(len(choices) for choices in groups) < np.prod([len(ps) for ps in pixels.values()])  # kept once

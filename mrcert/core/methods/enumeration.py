@@ -15,7 +15,9 @@ interval is therefore decided by those images alone, and this method decides it 
 * where rounding may hand a pixel to another point (tz: near-equal depths; rz: a point within
   rounding of a pixel edge), every image those records allow is decided too: by an interval
   bound over the few pixels, else by classifying each (with an affine tail, as the nominal
-  logits plus one change per group of pixels whose windows meet, :func:`_groups`);
+  logits plus one change per group of pixels whose windows meet, :func:`_groups`; on rz the
+  images of each recorded window point by point, each free point in one of its pixels,
+  :func:`_point_groups`);
 * optionally (``run_images`` below the number of images), a longer run first gets its exact hull
   -- per pixel and channel, the least and the greatest value the run's images take -- and bound
   propagation (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over
@@ -57,7 +59,7 @@ from mrcert.core.methods.base import (
 )
 from mrcert.core.models import class_margins, predicted
 from mrcert.core.verification.events import AXES, Enumeration, enumerate_images, record_options
-from mrcert.core.verification.incremental import IncrementalNetwork
+from mrcert.core.verification.incremental import IncrementalNetwork, _meets
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.errors import ConfigError, MrcertError
 
@@ -319,7 +321,7 @@ class _Run:
             # image, so only the changes inside what it depends on are followed; the variants'
             # changes join it (from the whole image then) at the first image the bound leaves open.
             net.offsets(pixels, low, high, c)
-            reach, groups = net.reach(), None
+            reach, groups, windows = net.reach(), None, e.windows_at(u)
             for k in range(u, v):
                 if k > u:
                     lo, hi = spans[k - a], spans[k - a + 1]
@@ -333,23 +335,27 @@ class _Run:
                 least[c] = torch.inf
                 if float(least.min()) <= scale:
                     if groups is None:  # each group's images classified (once per window)
-                        groups = _groups(net, pixels, options)
-                        if groups is None:  # too many to classify
-                            return False
                         net.start(torch.from_numpy(e.images(k, k + 1)))
-                        net.offsets(pixels, low, high, c)
-                        self.classified += sum(len(choices) for choices in groups)
-                    changes = [torch.cat([net.delta(w, v) for w, v in choices]) for choices in groups]
-                    reach = net.reach()
-                    low_ones = _low_variants(logits, changes, c, scale)
-                    if low_ones is None:
-                        return False
-                    for combo in low_ones:
-                        picked = [groups[g][r] for g, r in enumerate(combo) if r >= 0]
-                        where = np.concatenate([w for w, _ in picked])
-                        values = torch.cat([v for _, v in picked], 1)
-                        if self.variant_alone(e, k, where, values, c) < 0:
+                        # rz: the images of each window apart (one holds at any pose), point by point
+                        groups = [_point_groups(net, *e.free_points(w), table) for w in windows] or [
+                            _groups(net, pixels, options)
+                        ]
+                        if any(g is None for g in groups):  # too many to classify
                             return False
+                        net.offsets(pixels, low, high, c)
+                        self.classified += sum(len(choices) for one in groups for choices in one)
+                    changes = [[torch.cat([net.delta(w, v) for w, v in choices]) for choices in one] for one in groups]
+                    reach = net.reach()
+                    for one, change in zip(groups, changes, strict=True):
+                        low_ones = _low_variants(logits, change, c, scale)
+                        if low_ones is None:
+                            return False
+                        for combo in low_ones:
+                            picked = [one[g][r] for g, r in enumerate(combo) if r >= 0]
+                            where = np.concatenate([w for w, _ in picked])
+                            values = torch.cat([v for _, v in picked], 1)
+                            if self.variant_alone(e, k, where, values, c) < 0:
+                                return False
         return True
 
     def variant_alone(self, e: Enumeration, k: int, pixels: np.ndarray, values: torch.Tensor, c: int) -> float:
@@ -520,28 +526,69 @@ def _groups(net: IncrementalNetwork, pixels: np.ndarray, options: list) -> list[
     :func:`_combinations`). A change of one group leaves the values the others reach as they are,
     so (the tail being affine) the logits of any image the records allow are the current ones
     plus one change per group. None where a group has more than :data:`GROUP_VARIANTS` images."""
-    boxes = [net.boundary_box(pixels[j : j + 1]) for j in range(len(pixels))]
-    parent = list(range(len(pixels)))
+    groups = []
+    for js in _clusters([net.boundary_box(pixels[j : j + 1]) for j in range(len(pixels))]):
+        choices = _combinations(pixels[js], [options[j] for j in js], GROUP_VARIANTS)
+        if choices is None:
+            return None
+        groups.append(choices)
+    return groups
+
+
+def _point_groups(
+    net: IncrementalNetwork, pixels: dict[int, list[int]], ranked: dict[int, list[int]], table: torch.Tensor
+) -> list[list] | None:
+    """A window's images (rz), point by point: each free point in one of its ``pixels`` (-1: off
+    the image), each pixel then showing the nearest of the points there (``ranked``, nearest
+    first: the free points that may be there and the nearest other point, there throughout). The
+    free points in groups whose pixels reach disjoint boxes of the affine tail's first layer (as
+    :func:`_groups`); each group's images as (its pixels, their colours (C, n)), every pixel any
+    of its points may occupy set, so each holds beside any current image. Some k points with two
+    pixels each make at most 2^k images, where their 2k pixels' colours would make up to 3^2k,
+    and far fewer where a nearer point hides them: the images are found point by point, equal
+    ones kept once. None where a group has more than :data:`GROUP_VARIANTS`."""
+    free = set(pixels)
+    points = [(q, ps) for q, ps in pixels.items() if any(p >= 0 for p in ps)]
+    boxes = [net.boundary_box(np.array([p for p in ps if p >= 0], np.int64)) for _, ps in points]
+    groups = []
+    for js in _clusters(boxes):
+        members = [points[j] for j in js]
+        where = sorted({p for _, ps in members for p in ps if p >= 0})
+        at = {p: j for j, p in enumerate(where)}
+        # a state: per pixel, the place in its ranked points of the nearest one there so far; the
+        # points taken one by one (each in each of its pixels), equal states kept once
+        states = {tuple(next(i for i, r in enumerate(ranked[p]) if r not in free) for p in where)}
+        for q, ps in members:
+            states = {
+                s if p < 0 else (*s[: at[p]], min(s[at[p]], ranked[p].index(q)), *s[at[p] + 1 :])
+                for s in states
+                for p in ps
+            }
+            if len(states) > GROUP_VARIANTS:
+                return None
+        pix = np.array(where, np.int64)
+        groups.append([(pix, table[[ranked[p][i] for p, i in zip(where, s, strict=True)]].T.contiguous())
+                       for s in sorted(states)])  # fmt: skip
+    return groups
+
+
+def _clusters(boxes: list) -> list[list[int]]:
+    """The indices of ``boxes`` (r0, r1, c0, c1; None: reaches nothing) in groups, two whose
+    boxes meet in one."""
+    parent = list(range(len(boxes)))
 
     def root(j: int) -> int:
         while parent[j] != j:
             j = parent[j]
         return j
 
-    for i, j in itertools.combinations(range(len(pixels)), 2):
-        a, b = boxes[i], boxes[j]
-        if a is not None and b is not None and a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]:
+    for i, j in itertools.combinations(range(len(boxes)), 2):
+        if boxes[i] is not None and boxes[j] is not None and _meets(boxes[i], boxes[j]):
             parent[root(i)] = root(j)
     members: dict[int, list[int]] = {}
-    for j in range(len(pixels)):
+    for j in range(len(boxes)):
         members.setdefault(root(j), []).append(j)
-    groups = []
-    for js in members.values():
-        choices = _combinations(pixels[js], [options[j] for j in js], GROUP_VARIANTS)
-        if choices is None:
-            return None
-        groups.append(choices)
-    return groups
+    return list(members.values())
 
 
 def _low_variants(logits: torch.Tensor, changes: list[torch.Tensor], c: int, scale: float) -> list[tuple] | None:

@@ -29,7 +29,7 @@ winner changed (a few pixels each, where re-rendering would project every point 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
@@ -250,12 +250,15 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
     member = np.zeros(n, np.bool_)
     u_record, u_pose = [0], [0.0]  # a group's record, and the pose up to which it holds
     u_record.clear(), u_pose.clear()
+    w_rec = [0]  # per window, its first record
+    w_rec.clear()
     m = times.shape[0]
     j = 0
     g = 0
     while j < m or g < g_start.shape[0]:
         t = times[j] if j < m else np.inf
         if g < g_start.shape[0] and g_start[g] < t:  # a group's records, from the state at its start
+            w_rec.append(len(f_from))
             _group_records(P, rank, head, nxt, member, g_point[g_row[g] : g_row[g + 1]],
                            g_pixel[g_row[g] : g_row[g + 1]], len(starts) - 1, g_end[g], f_from, f_to, f_pixel,
                            f_point, u_record, u_pose)  # fmt: skip
@@ -337,7 +340,8 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
     fragile = np.empty((len(f_from), 4), np.int64)
     for r in range(len(f_from)):
         fragile[r, 0], fragile[r, 1], fragile[r, 2], fragile[r, 3] = f_from[r], f_to[r], f_pixel[r], f_point[r]
-    return first, np.array(starts), np.array(c_image), np.array(c_pixel), np.array(c_winner), fragile
+    w_rec.append(len(f_from))
+    return first, np.array(starts), np.array(c_image), np.array(c_pixel), np.array(c_winner), fragile, np.array(w_rec)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -345,12 +349,15 @@ def _group_records(
     P, rank, head, nxt, member, g_point, g_pixel, image, until, f_from, f_to, f_pixel, f_point, u_record, u_pose
 ):  # pragma: no cover - compiled
     """Records from ``image`` on (until the pose ``until``) of the colours each pixel ``g_pixel``
-    may show while the group's points ``g_point`` may be in any of their pixels: each of those
-    points that may be there, and the nearest other point there (the background if none)."""
+    may show while the group's points ``g_point`` may be in any of their pixels (-1: off the
+    image): each of those points that may be there, and the nearest other point there (the
+    background if none), a pixel's records nearest first (the background last)."""
     for r in range(g_point.shape[0]):
         member[g_point[r]] = True
     for r in range(g_pixel.shape[0]):
         p = g_pixel[r]
+        if p < 0:
+            continue
         done = False
         for r2 in range(r):
             done = done or g_pixel[r2] == p
@@ -366,6 +373,11 @@ def _group_records(
         for r2 in range(g_pixel.shape[0]):
             if g_pixel[r2] == p and g_point[r2] not in options:
                 options.append(g_point[r2])
+        for x in range(1, len(options)):  # nearest first: the z-buffer's order
+            y = x
+            while y > 0 and options[y] >= 0 and (options[y - 1] < 0 or _before(P, rank, options[y], options[y - 1])):
+                options[y - 1], options[y] = options[y], options[y - 1]
+                y -= 1
         for q in options:
             u_record.append(len(f_from))
             u_pose.append(until)
@@ -451,6 +463,12 @@ class Enumeration:
     width: int
     events: int  # crossings located
     fragile: np.ndarray  # (F, 4): from image, to image (exclusive), pixel, a point rounding may hand it to (tz)
+    # rz: window w's records are rows window_records[w] to window_records[w + 1] of ``fragile`` (a
+    # pixel's nearest first); its free points and the pixels each may occupy (-1: off the image)
+    # rows window_rows[w] to window_rows[w + 1] of ``free`` (point, pixel)
+    window_records: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
+    window_rows: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
+    free: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int64))
 
     def __len__(self) -> int:
         return len(self.starts)
@@ -479,6 +497,26 @@ class Enumeration:
         """The fragile records (from, to, pixel, point) that hold for some image ``start`` to ``stop - 1``."""
         f = self.fragile
         return f[(f[:, 0] < stop) & (f[:, 1] > start)] if len(f) else f
+
+    def windows_at(self, k: int) -> list[int]:
+        """The windows (rz) whose records hold image ``k``."""
+        r = self.window_records
+        held = np.nonzero(r[1:] > r[:-1])[0]
+        first = self.fragile[r[held]] if len(held) else np.empty((0, 4), np.int64)
+        return held[(first[:, 0] <= k) & (first[:, 1] > k)].tolist()
+
+    def free_points(self, w: int) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+        """Window ``w`` (rz): each free point's pixels (-1: off the image), and per pixel of its
+        records the points that may show there, nearest first (-1: the background): every free
+        point that may be there, and the nearest other point, which is there throughout."""
+        pixels: dict[int, list[int]] = {}
+        for q, p in self.free[self.window_rows[w] : self.window_rows[w + 1]].tolist():
+            if p not in pixels.setdefault(q, []):
+                pixels[q].append(p)
+        ranked: dict[int, list[int]] = {}
+        for _, _, p, q in self.fragile[self.window_records[w] : self.window_records[w + 1]].tolist():
+            ranked.setdefault(p, []).append(q)
+        return pixels, ranked
 
     def variants(self, k: int, limit: int) -> np.ndarray | None:
         """Image ``k`` with every combination of the points its fragile records allow at their
@@ -573,7 +611,9 @@ def enumerate_images(
         start, targets = _translation_moves(P, a, float(lo), times, pts, fx, fy, cx, cy, int(height), int(width))
         none = np.empty(0, np.int64)
         groups, events = (np.empty(0), np.empty(0), np.zeros(1, np.int64), none, none), len(times)
-    first, starts, c_image, c_pixel, c_winner, fragile = _sweep(P, ranks, a, float(lo), times, pts, targets, start,
-                                                                *groups, int(height), int(width))  # fmt: skip
+    first, starts, c_image, c_pixel, c_winner, fragile, records = _sweep(
+        P, ranks, a, float(lo), times, pts, targets, start, *groups, int(height), int(width)
+    )
     return Enumeration(axis, float(lo), float(hi), starts, first, c_image, c_pixel, c_winner, table,
-                       float(background), int(height), int(width), events, fragile)  # fmt: skip
+                       float(background), int(height), int(width), events, fragile, records, groups[2],
+                       np.column_stack([groups[3], groups[4]]).astype(np.int64))  # fmt: skip

@@ -419,12 +419,11 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
                         if bands[k2, 4] == 1 and level not in vs:
                             vs.append(level)
             for u in us:
-                for v in vs:
+                for v in vs:  # -1: off the image, where the point shows nowhere
                     p = _pixel(u, v, height, width)
-                    if p >= 0:
-                        c_window.append(w)
-                        c_point.append(i)
-                        c_pixel.append(p)
+                    c_window.append(w)
+                    c_point.append(i)
+                    c_pixel.append(p)
     return (times, points, targets, np.array(w_start), np.array(w_end), np.array(c_window, np.int64),
             np.array(c_point, np.int64), np.array(c_pixel, np.int64))  # fmt: skip
 
@@ -432,7 +431,8 @@ def _timeline(bands, owners, lo, hi, lu, lv, height, width):  # pragma: no cover
 def rz_moves(P: np.ndarray, K, lo: float, hi: float, height: int, width: int):
     """What the sweep needs on ``rz`` over ``[lo, hi]``: each point's pixel at ``lo`` (-1: none),
     the moves (pose, point, new pixel) in pose order, the recorded windows (start and end pose,
-    offsets into the rows, and per row a point and a pixel it may occupy), and the bands' count."""
+    offsets into the rows, and per row a point and a pixel it may occupy, -1: off the image), and
+    the bands' count."""
     if not -1.0 <= lo <= hi <= 1.0:  # cos >= 0.5: the rotation's 1 is exact, and one extremum at most
         raise ValueError(f"an rz interval within [-1, 1] rad is enumerated, got [{lo}, {hi}]")
     K = torch.as_tensor(K, dtype=torch.float64)
