@@ -334,7 +334,7 @@ class _Run:
                 least = logits[c] - logits + net.offsets(pixels, low, high, c)
                 least[c] = torch.inf
                 if float(least.min()) <= scale:
-                    if groups is None:  # each group's images classified (once per window)
+                    if groups is None:  # each window's groups and their images, from the whole image
                         net.start(torch.from_numpy(e.images(k, k + 1)))
                         # rz: the images of each window apart (one holds at any pose), point by point
                         groups = [_point_groups(net, *e.free_points(w), table) for w in windows] or [
@@ -343,8 +343,9 @@ class _Run:
                         if any(g is None for g in groups):  # too many to classify
                             return False
                         net.offsets(pixels, low, high, c)
-                        self.classified += sum(len(choices) for one in groups for choices in one)
+                    before = net.deltas
                     changes = [[torch.cat([net.delta(w, v) for w, v in choices]) for choices in one] for one in groups]
+                    self.classified += net.deltas - before  # each change computed: a variant classified
                     reach = net.reach()
                     for one, change in zip(groups, changes, strict=True):
                         low_ones = _low_variants(logits, change, c, scale)

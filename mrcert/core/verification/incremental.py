@@ -89,6 +89,7 @@ class IncrementalNetwork:
         # a bound's offsets, a variant's change of the logits (:meth:`bound`, :meth:`variant`).
         self._kept: dict[tuple, torch.Tensor] = {}
         self._footprint: dict[int, tuple[int, int, int, int]] = {}
+        self.deltas = 0  # the changes of the logits computed (:meth:`delta`), each a variant classified
 
     # --- reading the graph ---------------------------------------------------------------------
     @classmethod
@@ -311,6 +312,7 @@ class IncrementalNetwork:
         step changes what it read); the current image is left as it is."""
         key = ("delta", pixels.tobytes(), values.numpy().tobytes())
         if key not in self._kept:
+            self.deltas += 1
             now = self.values[self.output].clone()
             nominal = self.values[0].reshape(self.values[0].shape[1], -1)[:, torch.from_numpy(pixels)].clone()
             reads: dict = {}
