@@ -321,7 +321,7 @@ class _Run:
             # image, so only the changes inside what it depends on are followed; the variants'
             # changes join it (from the whole image then) at the first image the bound leaves open.
             net.offsets(pixels, low, high, c)
-            reach, groups, windows = net.reach(), None, e.windows_at(u)
+            reach, groups = net.reach(), None
             for k in range(u, v):
                 if k > u:
                     lo, hi = spans[k - a], spans[k - a + 1]
@@ -337,7 +337,7 @@ class _Run:
                     if groups is None:  # each window's groups and their images, from the whole image
                         net.start(torch.from_numpy(e.images(k, k + 1)))
                         # rz: the images of each window apart (one holds at any pose), point by point
-                        groups = [_point_groups(net, *e.free_points(w), table) for w in windows] or [
+                        groups = [_point_groups(net, *e.free_points(w), table) for w in e.windows_at(u)] or [
                             _groups(net, pixels, options)
                         ]
                         if any(g is None for g in groups):  # too many to classify
@@ -560,10 +560,9 @@ def _point_groups(
         # points taken one by one (each in each of its pixels), equal states kept once
         states = {tuple(next(i for i, r in enumerate(ranked[p]) if r not in free) for p in where)}
         for q, ps in members:
+            places = [(at[p], ranked[p].index(q)) if p >= 0 else None for p in ps]
             states = {
-                s if p < 0 else (*s[: at[p]], min(s[at[p]], ranked[p].index(q)), *s[at[p] + 1 :])
-                for s in states
-                for p in ps
+                s if x is None else (*s[: x[0]], min(s[x[0]], x[1]), *s[x[0] + 1 :]) for s in states for x in places
             }
             if len(states) > GROUP_VARIANTS:
                 return None

@@ -29,7 +29,7 @@ winner changed (a few pixels each, where re-rendering would project every point 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -466,9 +466,9 @@ class Enumeration:
     # rz: window w's records are rows window_records[w] to window_records[w + 1] of ``fragile`` (a
     # pixel's nearest first); its free points and the pixels each may occupy (-1: off the image)
     # rows window_rows[w] to window_rows[w + 1] of ``free`` (point, pixel)
-    window_records: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
-    window_rows: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
-    free: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int64))
+    window_records: np.ndarray
+    window_rows: np.ndarray
+    free: np.ndarray
 
     def __len__(self) -> int:
         return len(self.starts)
