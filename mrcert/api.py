@@ -179,7 +179,7 @@ class BoundPropagation(_Deterministic):
 
 
 class ImageEnumeration(_Deterministic):
-    """Exact certification by enumerating every image the interval renders (a translation or rz):
+    """Exact certification by enumerating every image the interval renders (any one axis):
     verified or falsified, unknown only when ``max_bounds`` is spent."""
 
     def __init__(self, model, scene: Scene, axis: str = "tz", max_bounds: int = 4096, **kw):

@@ -13,13 +13,16 @@ import torch
 from mrcert.core.methods.base import BaseClassifier
 from mrcert.core.methods.enumeration import ImageEnumeration, _point_groups
 from mrcert.core.projection import project
-from mrcert.core.verification.events import enumerate_images
+from mrcert.core.verification.events import enumerate_images, record_options
 from mrcert.core.verification.incremental import IncrementalNetwork
 from mrcert.data.samples import TestSample
 from mrcert.errors import ConfigError
 from tests.conftest import PAPER_K, compose_cfg
 from tests.test_pixelwise import occluding_scene
 from tests.test_verification import REQUEST, Brightness, piece_poses
+
+# rx and ry move the depths too: their sweeps are long on 2 cores, checked by ``make test-full``
+ROTATION_AXES = ["rz", *(pytest.param(a, marks=pytest.mark.slow) for a in ("rx", "ry"))]
 
 SMALL_H, SMALL_W = 12, 16
 SMALL_K = torch.tensor([[20.0, 0.0, 8.0], [0.0, 20.0, 6.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -196,28 +199,34 @@ def test_every_interval_is_decided_and_none_verified_that_a_sampled_pose_classif
     assert outcomes == {"verified", "falsified"}
 
 
-def test_a_rotation_is_refused_before_any_run():
-    with pytest.raises(ConfigError, match=r"motion.axis='rx' is not allowed: a translation or rz \(tx, ty, tz, rz\)"):
-        from mrcert.infra.config import validate
+def test_a_rotation_beyond_one_radian_is_refused_before_any_run():
+    from mrcert.infra.config import validate
 
-        validate(compose_cfg(["task=certify", "method=enumeration", "motion=rx"]))
+    validate(compose_cfg(["task=certify", "method=enumeration", "motion=rx"]))  # every axis is enumerated
+    with pytest.raises(ConfigError, match=r"method.half_width=1.5 is not allowed: at most 1 rad on rx"):
+        validate(compose_cfg(["task=certify", "method=enumeration", "motion=rx", "method.half_width=1.5"]))
 
 
-def rz_check(points, colors, rank, lo: float, hi: float) -> tuple[int, int]:
-    """Render ``rz`` at thousands of poses (random, every image's start and its float neighbours,
-    every band's ends and inside): each image is the enumerated image of its pose, or inside a band
-    the image before or after it, or one its records allow. Returns (poses, poses inside bands)."""
-    from mrcert.core.verification.rotation_events import _bands
+def rotation_check(
+    points, colors, rank, lo: float, hi: float, axis: str = "rz", combinations: bool = True
+) -> tuple[int, int]:
+    """Render the rotation ``axis`` at thousands of poses (random, every image's start and its
+    float neighbours, every band's ends and inside -- a depth order's too): each image is the
+    enumerated image of its pose, or inside a band the image before or after it, or one its
+    records allow: one of their combinations, and one of a window's images point by point
+    (``combinations``), or else at each pixel one of the colours they allow there (what the hull
+    holds). Returns (poses, poses inside bands)."""
+    from mrcert.core.verification.rotation_events import ROTATIONS, rotation_bands
 
-    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", lo, hi)
-    bands = _bands(points, lo, hi, 20.0, 20.0, 8.0, 6.0, SMALL_H, SMALL_W)[0][:, :2]
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, axis, lo, hi)
+    bands = rotation_bands(points, SMALL_K, axis, lo, hi, SMALL_H, SMALL_W)[0][:, :2]
     inside = np.concatenate([np.linspace(x, y, 7)[1:-1] for x, y in bands]) if len(bands) else np.empty(0)
     rng = np.random.default_rng(1)
     poses = np.r_[rng.uniform(lo, hi, 3000), e.starts, np.nextafter(e.starts, -np.inf), np.nextafter(e.starts, np.inf)]
     poses = np.sort(np.r_[poses, bands.ravel(), inside])
     poses = poses[(poses >= lo) & (poses <= hi)]
     motions = torch.zeros(len(poses), 6, dtype=torch.float64)
-    motions[:, 5] = torch.from_numpy(poses)
+    motions[:, ROTATIONS[axis]] = torch.from_numpy(poses)
     drawn = project(torch.from_numpy(points), torch.from_numpy(colors), SMALL_K, motions, SMALL_H, SMALL_W, 1.0,
                     rank=torch.from_numpy(rank))[0].numpy()  # fmt: skip
     images = e.images(0, len(e))
@@ -230,11 +239,22 @@ def rz_check(points, colors, rank, lo: float, hi: float) -> tuple[int, int]:
         near = (k[j] - 1, k[j] + 1) if in_band[j] else ()
         if any(np.array_equal(images[q], drawn[j]) for q in near if 0 <= q < len(e)):
             continue
+        if not combinations:
+            options = record_options(e.alternates(int(k[j]), int(k[j]) + 1))
+            want, table = drawn[j].reshape(len(colors[0]), -1), e.table()
+            differ = np.nonzero((images[k[j]].reshape(want.shape) != want).any(0))[0]
+            assert all(any(np.array_equal(table[q], want[:, p]) for q in options.get(p, [])) for p in differ), (
+                f"{axis}={poses[j]!r} draws a colour no record allows (image {k[j]})"
+            )
+            continue
         variants = e.variants(int(k[j]), 100000)
         assert variants is not None and any(np.array_equal(v, drawn[j]) for v in variants), (
-            f"rz={poses[j]!r} draws an image the enumeration does not hold (image {k[j]})"
+            f"{axis}={poses[j]!r} draws an image the enumeration does not hold (image {k[j]})"
         )
-        assert point_by_point(e, int(k[j]), drawn[j]), f"rz={poses[j]!r}: not a window's image, point by point"
+        windows = e.windows_at(int(k[j]))
+        if sum(e.window_records[w + 1] - e.window_records[w] for w in windows) == len(e.alternates(k[j], k[j] + 1)):
+            # all the image's records are its windows' (else the method classifies their combinations)
+            assert point_by_point(e, int(k[j]), drawn[j]), f"{axis}={poses[j]!r}: not a window's image, point by point"
     return len(poses), int(in_band.sum())
 
 
@@ -267,28 +287,35 @@ def point_by_point(e, k: int, drawn: np.ndarray) -> bool:
     return False
 
 
+@pytest.mark.parametrize("axis", ROTATION_AXES)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_every_image_a_dense_sampling_finds_on_rz_is_enumerated(seed):
+def test_every_image_a_dense_sampling_finds_on_a_rotation_is_enumerated(axis, seed):
+    """A quarter of the cloud on a wall facing the camera: on rx and ry its points' depths all
+    cross at 0, each pair of one pixel within rounding there."""
     points, colors, rank = tiny_cloud(seed)
-    count, in_band = rz_check(points, colors, rank, -0.3, 0.3)
-    assert count > 10000 and in_band > 3000  # the bands' insides were sampled, not only their outsides
+    count, in_band = rotation_check(points, colors, rank, -0.3, 0.3, axis)
+    assert count > 8000 and in_band > 3000  # the bands' insides were sampled, not only their outsides
 
 
-def test_rz_bands_that_overlap_or_hold_an_end_are_recorded_and_every_drawn_image_allowed():
-    from mrcert.core.verification.rotation_events import _bands
+@pytest.mark.parametrize("axis", ROTATION_AXES)
+def test_rotation_bands_that_overlap_or_hold_an_end_are_recorded_and_every_drawn_image_allowed(axis):
+    from mrcert.core.verification.rotation_events import ROTATIONS, _bands
 
     points, colors, rank = tiny_cloud(0, 200)
     points = np.r_[points, points[:40]]  # the same positions twice: their bands coincide
     colors = np.r_[colors, np.random.default_rng(5).uniform(0, 1, (40, 3)).astype(np.float32)]
     rank = np.random.default_rng(3).permutation(len(points))
-    band = _bands(points, -0.3, 0.3, 20.0, 20.0, 8.0, 6.0, SMALL_H, SMALL_W)[0][10]
-    lo = 0.5 * (band[0] + band[1])  # the interval starts inside a band
-    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", lo, lo + 0.2)
+    bands, owners = _bands(points, ROTATIONS[axis], -0.3, 0.3, 20.0, 20.0, 8.0, 6.0, SMALL_H, SMALL_W)
+    inside = (bands[:, 4] == 0) & (np.minimum(bands[:, 2], bands[:, 3]) >= 0) & (bands[:, 3] < SMALL_W)
+    band = bands[np.nonzero(inside & (np.abs(points[owners, 1] / points[owners, 2]) < 0.1))[0][10]]
+    lo = 0.5 * (band[0] + band[1])  # the interval starts inside a band of a point on the image
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, axis, lo, lo + 0.2)
     assert len(e.fragile) > 0
-    rz_check(points, colors, rank, lo, lo + 0.2)
+    rotation_check(points, colors, rank, lo, lo + 0.2, axis)
 
 
-def test_rz_points_a_unit_in_the_last_place_apart_may_each_be_either_side_while_their_bands_overlap():
+@pytest.mark.parametrize("axis", ROTATION_AXES)
+def test_points_a_unit_in_the_last_place_apart_may_each_be_either_side_while_their_bands_overlap(axis):
     """Two points one float apart cross each edge within rounding of one another, in an order
     only the renderer's arithmetic decides: while both bands hold, each point is in either pixel,
     and every image a dense sampling draws there is one the records allow."""
@@ -299,13 +326,39 @@ def test_rz_points_a_unit_in_the_last_place_apart_may_each_be_either_side_while_
     points = np.r_[points, near]
     colors = np.r_[colors, np.random.default_rng(6).uniform(0, 1, (len(near), 3)).astype(np.float32)]
     rank = np.random.default_rng(7).permutation(len(points))
-    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", -0.3, 0.3)
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, axis, -0.3, 0.3)
     records = e.fragile
     pairs = {(a, b): set() for a, b, _, _ in records.tolist()}
     for a, b, _, q in records.tolist():
         pairs[(a, b)].add(q)
     assert max(len(q) for q in pairs.values()) >= 2  # windows where two such points are free at once
-    rz_check(points, colors, rank, -0.3, 0.3)
+    # on rx and ry two such points' depths are within rounding of each other at every pose: their
+    # order is the renderer's alone throughout, too many combinations to list (the hull holds them)
+    rotation_check(points, colors, rank, -0.3, 0.3, axis, combinations=axis == "rz")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("axis", ["rx", "ry"])
+def test_points_on_a_line_along_the_rotation_axis_cross_together_and_their_depths_never_tie_ambiguously(axis):
+    """A grid's line along the rotation's own axis (rx: equal Y and Z, X apart): the renderer
+    computes one row (ry: column) and one depth for all its points at every pose, so their
+    crossings coincide without a recorded window, their equal depths always hand a shared pixel
+    to the lower rank, and every sampled pose draws an enumerated image."""
+    rng = np.random.default_rng(8)
+    lines = []
+    for _ in range(12):
+        y, z = rng.uniform(-0.3, 0.3), rng.uniform(1.0, 3.0)
+        along = (np.linspace(-0.4, 0.4, 17) + 0.013) * z  # off the column edges at rx = 0
+        lines.append(np.column_stack([along, np.full(17, y * z), np.full(17, z)]))
+    points = np.concatenate(lines)
+    if axis == "ry":
+        points = points[:, [1, 0, 2]]
+    colors = rng.uniform(0, 1, (len(points), 3)).astype(np.float32)
+    rank = rng.permutation(len(points))
+    e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, axis, -0.3, 0.3)
+    assert len(e.fragile) == 0 and len(e.window_records) == 1  # no window, no near-equal depths
+    count, _ = rotation_check(points, colors, rank, -0.3, 0.3, axis)
+    assert count > 3000
 
 
 def test_a_column_of_points_on_the_optical_axis_is_resolved_point_by_point_near_rz_0():
@@ -326,7 +379,7 @@ def test_a_column_of_points_on_the_optical_axis_is_resolved_point_by_point_near_
     lo, hi = -2e-11, 2e-11
     e = enumerate_images(points, colors, rank, SMALL_K, SMALL_H, SMALL_W, 1.0, "rz", lo, hi)
     assert len(e.fragile) == 0 and len(e) > n // 2  # each point's own crossing, not one blur of all
-    count, _ = rz_check(points, colors, rank, lo, hi)
+    count, _ = rotation_check(points, colors, rank, lo, hi)
     assert count > 3000
 
 

@@ -324,12 +324,12 @@ def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_b
     assert _low_variants(logits, changes, c, float(margins[70])) is None  # more than VARIANTS
 
 
-def test_a_window_s_images_found_point_by_point_are_exactly_those_of_every_choice_of_its_points():
-    """Free points, each in one of two or three pixels or off the image, some sharing pixels, and
-    per pixel the points that may show there nearest first (a point held throughout, or the
-    background): the images found point by point, equal ones kept once and grouped by the
-    windows their pixels reach, are exactly the distinct images of every choice of every point
-    (brute force), each pixel showing the nearest point there."""
+def test_a_window_s_images_found_unit_by_unit_are_exactly_those_of_every_choice_of_its_units():
+    """Free points, each in one of two or three pixels or off the image, some sharing pixels, two
+    of them twins (in their r-th pixels together), and per pixel the points that may show there
+    nearest first (a point held throughout, or the background): the images found unit by unit,
+    equal ones kept once and grouped by the windows their pixels reach, are exactly the distinct
+    images of every choice of every unit (brute force), each pixel showing the nearest point there."""
     torch.manual_seed(4)
     model = randomised(Local(), 4)
     e = enumeration(3)
@@ -337,6 +337,7 @@ def test_a_window_s_images_found_point_by_point_are_exactly_those_of_every_choic
     near, far = [5 * W + 5, 5 * W + 6, 6 * W + 5, 6 * W + 6], [18 * W + 30, 19 * W + 30]
     pixels = {0: [near[0], near[1]], 1: [near[1], near[3]], 2: [near[2], -1], 3: [near[0], near[2], near[3]],
               4: [near[3], near[1]], 5: [far[0], far[1]], 6: [far[1], -1], 7: [-1, -1]}  # fmt: skip
+    units = {0: [0], -2: [1, 4], 2: [2], 3: [3], 5: [5], 6: [6], 7: [7]}  # 1 and 4 twins: r-th pixels together
     rng = np.random.default_rng(2)
     ranked = {}
     for p in near + far:
@@ -351,11 +352,11 @@ def test_a_window_s_images_found_point_by_point_are_exactly_those_of_every_choic
     net = IncrementalNetwork.of(model)
     with torch.inference_mode():
         net.start(image)
-        groups = _point_groups(net, pixels, ranked, table)
+        groups = _point_groups(net, pixels, ranked, units, table)
     assert groups is not None and len(groups) == 2  # the near pixels and the far ones
     brute = set()
-    for combo in itertools.product(*pixels.values()):
-        chosen = dict(zip(pixels, combo, strict=True))
+    for combo in itertools.product(*[range(len(pixels[qs[0]])) for qs in units.values()]):
+        chosen = {q: pixels[q][r] for qs, r in zip(units.values(), combo, strict=True) for q in qs}
         variant = image.clone().view(3, -1)
         for p, order in ranked.items():
             variant[:, p] = table[next(q for q in order if q not in pixels or chosen[q] == p)]

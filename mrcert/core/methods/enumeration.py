@@ -12,12 +12,13 @@ interval is therefore decided by those images alone, and this method decides it 
   what its changed pixels reach, up to :data:`LANES` pieces of the interval at once; a network
   whose graph it cannot follow is classified image by image, in batches. A margin within float
   rounding of 0 is classified again on the image alone;
-* where rounding may hand a pixel to another point (tz: near-equal depths; rz: a point within
-  rounding of a pixel edge), every image those records allow is decided too: by an interval
-  bound over the few pixels, else by classifying each (with an affine tail, as the nominal
-  logits plus one change per group of pixels whose windows meet, :func:`_groups`; on rz the
-  images of each recorded window point by point, each free point in one of its pixels,
-  :func:`_point_groups`);
+* where rounding may hand a pixel to another point (tz: near-equal depths; a rotation: a point
+  within rounding of a pixel edge, and on rx and ry two depths within rounding of each other),
+  every image those records allow is decided too: by an interval bound over the few pixels, else
+  by classifying each (with an affine tail, as the nominal logits plus one change per group of
+  pixels whose windows meet, :func:`_groups`; on a rotation the images of each recorded window
+  unit by unit, each free point -- or line of twins along the rotation's axis -- in one of its
+  pixels or shown nowhere, :func:`_point_groups`);
 * optionally (``run_images`` below the number of images), a longer run first gets its exact hull
   -- per pixel and channel, the least and the greatest value the run's images take -- and bound
   propagation (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over
@@ -33,9 +34,9 @@ Guarantee: verified means ``h(O(V, alpha)) = c`` for every float64 ``|alpha| <= 
 where ``h`` is the base classifier as it classifies one image (the bounds hold for it in exact
 arithmetic; the incremental logits are its float32 forward pass up to a different order of
 summation, far below the rounding margin within which an image is classified alone); nothing is
-assumed about a distribution. Translations (``tx``, ``ty``, ``tz``) and the rotation about the
-optical axis (``rz``, :mod:`mrcert.core.verification.rotation_events`: sound while the library's
-``cos`` and ``sin`` are within a few units in the last place).
+assumed about a distribution. Translations (``tx``, ``ty``, ``tz``) and rotations (``rx``,
+``ry``, ``rz``, :mod:`mrcert.core.verification.rotation_events`: sound while the library's ``cos``
+and ``sin`` are within a few units in the last place).
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ from mrcert.core.models import class_margins, predicted
 from mrcert.core.verification.events import AXES, Enumeration, enumerate_images, record_options
 from mrcert.core.verification.incremental import IncrementalNetwork, _meets
 from mrcert.core.verification.network import BoundNetwork
+from mrcert.core.verification.rotation_events import ROTATIONS
 from mrcert.errors import ConfigError, MrcertError
 
 SPREAD = 33
@@ -103,10 +105,10 @@ class ImageEnumeration(WholeInterval, Method):
     def __post_init__(self):
         super().__post_init__()
         if self.axis not in AXES:
-            allowed = f"a translation or rz ({', '.join(AXES)}) for method=enumeration"
-            raise ConfigError("motion.axis", self.axis, allowed)
-        if self.axis == "rz" and not 0 <= self.half_width <= 1:
-            raise ConfigError("method.half_width", self.half_width, "at most 1 rad on rz for method=enumeration")
+            raise ConfigError("motion.axis", self.axis, f"one of {', '.join(AXES)} for method=enumeration")
+        if self.axis in ROTATIONS and not 0 <= self.half_width <= 1:
+            why = f"at most 1 rad on {self.axis} for method=enumeration"
+            raise ConfigError("method.half_width", self.half_width, why)
 
     @classmethod
     def from_config(cls, method: DictConfig, motion: DictConfig) -> ImageEnumeration:
@@ -336,8 +338,11 @@ class _Run:
                 if float(least.min()) <= scale:
                     if groups is None:  # each window's groups and their images, from the whole image
                         net.start(torch.from_numpy(e.images(k, k + 1)))
-                        # rz: the images of each window apart (one holds at any pose), point by point
-                        groups = [_point_groups(net, *e.free_points(w), table) for w in e.windows_at(u)] or [
+                        # a rotation: the images of each window apart (one holds at any pose), point by point
+                        windows = e.windows_at(u)
+                        if sum(e.window_records[w + 1] - e.window_records[w] for w in windows) < len(here):
+                            windows = []  # records beside the windows' (rx, ry: depths within rounding)
+                        groups = [_point_groups(net, *e.free_points(w), table) for w in windows] or [
                             _groups(net, pixels, options)
                         ]
                         if any(g is None for g in groups):  # too many to classify
@@ -537,33 +542,55 @@ def _groups(net: IncrementalNetwork, pixels: np.ndarray, options: list) -> list[
 
 
 def _point_groups(
-    net: IncrementalNetwork, pixels: dict[int, list[int]], ranked: dict[int, list[int]], table: torch.Tensor
+    net: IncrementalNetwork,
+    pixels: dict[int, list[int]],
+    ranked: dict[int, list[int]],
+    units: dict[int, list[int]],
+    table: torch.Tensor,
 ) -> list[list] | None:
-    """A window's images (rz), point by point: each free point in one of its ``pixels`` (-1: off
-    the image), each pixel then showing the nearest of the points there (``ranked``, nearest
-    first: the free points that may be there and the nearest other point, there throughout). The
-    free points in groups whose pixels reach disjoint boxes of the affine tail's first layer (as
-    :func:`_groups`); each group's images as (its pixels, their colours (C, n)), every pixel any
-    of its points may occupy set, so each holds beside any current image. Some k points with two
-    pixels each make at most 2^k images, where their 2k pixels' colours would make up to 3^2k,
-    and far fewer where a nearer point hides them: the images are found point by point, equal
-    ones kept once. None where a group has more than :data:`GROUP_VARIANTS`."""
+    """A window's images (a rotation), unit by unit: each unit of free points (one point, or
+    twins on a line along the rotation's axis, which take their ``r``-th pixels together) in one
+    of its choices (a pixel per point, -1: off the image), each pixel then showing the nearest of
+    the points there (``ranked``, nearest first: the free points that may be there and the nearest
+    other point, there throughout). The units in groups whose pixels reach disjoint boxes of the
+    affine tail's first layer (as :func:`_groups`); each group's images as (its pixels, their
+    colours (C, n)), every pixel any of its points may occupy set, so each holds beside any
+    current image. Some k units with two choices each make at most 2^k images, where their
+    pixels' colours would make far more, and fewer where a nearer point hides them: the images
+    are found unit by unit, equal ones kept once. None where a group has more than
+    :data:`GROUP_VARIANTS`."""
     free = set(pixels)
-    points = [(q, ps) for q, ps in pixels.items() if any(p >= 0 for p in ps)]
-    boxes = [net.boundary_box(np.array([p for p in ps if p >= 0], np.int64)) for _, ps in points]
+    members_of = []
+    for qs in units.values():
+        if len({len(pixels[q]) for q in qs}) == 1:
+            members_of.append(qs)
+        else:  # not aligned choices: each point on its own (a superset of the unit's images)
+            members_of += [[q] for q in qs]
+    units_ = [qs for qs in members_of if any(p >= 0 for q in qs for p in pixels[q])]
+    boxes = [net.boundary_box(np.array(sorted({p for q in qs for p in pixels[q] if p >= 0}), np.int64))
+             for qs in units_]  # fmt: skip
     groups = []
     for js in _clusters(boxes):
-        members = [points[j] for j in js]
-        where = sorted({p for _, ps in members for p in ps if p >= 0})
+        members = [units_[j] for j in js]
+        where = sorted({p for qs in members for q in qs for p in pixels[q] if p >= 0})
         at = {p: j for j, p in enumerate(where)}
         # a state: per pixel, the place in its ranked points of the nearest one there so far; the
-        # points taken one by one (each in each of its pixels), equal states kept once
+        # units taken one by one (each in each of its choices), equal states kept once
         states = {tuple(next(i for i, r in enumerate(ranked[p]) if r not in free) for p in where)}
-        for q, ps in members:
-            places = [(at[p], ranked[p].index(q)) if p >= 0 else None for p in ps]
-            states = {
-                s if x is None else (*s[: x[0]], min(s[x[0]], x[1]), *s[x[0] + 1 :]) for s in states for x in places
-            }
+        for qs in members:
+            choices = []
+            for r in range(len(pixels[qs[0]])):
+                places = [(at[pixels[q][r]], ranked[pixels[q][r]].index(q)) for q in qs if pixels[q][r] >= 0]
+                if places not in choices:
+                    choices.append(places)
+            grown = set()
+            for st in states:
+                for places in choices:
+                    new = list(st)
+                    for x, i in places:
+                        new[x] = min(new[x], i)
+                    grown.add(tuple(new))
+            states = grown
             if len(states) > GROUP_VARIANTS:
                 return None
         pix = np.array(where, np.int64)

@@ -99,7 +99,8 @@ class EnumerationConfig(MethodConfig):
 
     @staticmethod
     def relations(method: Mapping[str, Any], where: str, root: Mapping[str, Any]) -> None:
-        """The images of an interval are enumerated along a translation or about the optical axis."""
+        """On a rotation, the interval is within [-1, 1] rad (the rotation's 1 exact, cos >= 0.5)."""
         axis = _single_axis(root)
-        if axis is not None and not (is_translation(axis) or axis == "rz"):
-            raise ConfigError("motion.axis", axis, "a translation or rz (tx, ty, tz, rz) for method=enumeration")
+        if axis is not None and not is_translation(axis) and not 0 <= method["half_width"] <= 1:
+            why = f"at most 1 rad on {axis} for method=enumeration"
+            raise ConfigError(f"{where}.half_width", method["half_width"], why)

@@ -29,6 +29,7 @@ winner changed (a few pixels each, where re-rendering would project every point 
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import numba
@@ -37,12 +38,13 @@ import torch
 
 from mrcert.core.axes import axis_index
 from mrcert.core.verification.float_order import _float, _key, _level
+from mrcert.core.verification.rotation_events import ROTATIONS, _camera
 
 TRANSLATIONS = ("tx", "ty", "tz")
 """The translations, enumerated here."""
 
-AXES = (*TRANSLATIONS, "rz")
-"""The axes enumerated: the translations here, the rotation about the optical axis in
+AXES = (*TRANSLATIONS, *ROTATIONS)
+"""The axes enumerated: the translations here, the rotations in
 :mod:`mrcert.core.verification.rotation_events`."""
 
 
@@ -187,6 +189,24 @@ def _before(P, rank, i, j):  # pragma: no cover - compiled
     return P[i, 2] < P[j, 2] or (P[i, 2] == P[j, 2] and rank[i] < rank[j])
 
 
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _nearer(P, rank, i, j, axis, c, s):  # pragma: no cover - compiled
+    """:func:`_before` at a pose of ``rx`` (``axis`` 3) or ``ry`` (4) with the rotation's entries
+    ``c`` and signed ``s``, where the depths move: the renderer's computed depths compared (the
+    caller evaluates where no two depths of one pixel are within rounding, or records the pose)."""
+    if axis == 3 or axis == 4:
+        zi = _camera(P[i, 0], P[i, 1], P[i, 2], axis, 2, c, s)
+        zj = _camera(P[j, 0], P[j, 1], P[j, 2], axis, 2, c, s)
+        return zi < zj or (zi == zj and rank[i] < rank[j])
+    return _before(P, rank, i, j)
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _entries(t):  # pragma: no cover - compiled
+    """A rotation's ``cos |t|`` and ``sign(t) sin |t|`` (:func:`mrcert.core.geometry.rotvec_to_matrix`)."""
+    return math.cos(abs(t)), math.copysign(math.sin(abs(t)), t)
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _translation_moves(P, axis, lo, times, points, fx, fy, cx, cy, height, width):  # pragma: no cover - compiled
     """Each point's pixel at ``lo`` and at each of its crossings, as the renderer decides."""
@@ -200,7 +220,7 @@ def _translation_moves(P, axis, lo, times, points, fx, fy, cx, cy, height, width
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_row, g_point, g_pixel, height,
+def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_row, g_point, g_pixel, tied, height,
            width):  # pragma: no cover - compiled  # fmt: skip
     """The images along the interval: the first image's winners, each later image's start pose,
     per image the pixels whose winner changed (image index, pixel, new winner; -1: none), and
@@ -208,7 +228,10 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
     2) near-equal depths, and for each recorded group ``g`` (poses ``g_start[g]`` to ``g_end[g]``,
     its points' possible pixels in rows ``g_row[g]`` to ``g_row[g + 1]`` of ``g_point`` and
     ``g_pixel``) the colours those pixels may show. Each point starts in pixel ``start[i]`` and
-    moves to ``targets[k]`` at ``times[k]`` (-1: no pixel)."""
+    moves to ``targets[k]`` at ``times[k]`` (-1: no pixel); on rx and ry (``axis`` 3, 4) a target
+    ``-2 - j`` ends, and ``-2 - N - j`` begins, a stretch where the point's depth and point
+    ``j``'s are within rounding (``tied``: the pairs ``i * N + j``, ``i < j``, within it at
+    ``lo``): while it lasts, the one that is not the winner of their pixel may show there."""
     n, hw = P.shape[0], height * width
     pix = np.full(n, -1, np.int64)
     head = np.full(hw, -1, np.int64)
@@ -219,7 +242,9 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
     dirty = np.zeros(hw, np.bool_)
     touched = np.empty(hw, np.int64)
 
-    def insert(i, p):
+    c, s = _entries(lo)
+
+    def insert(i, p, c, s):
         pix[i] = p
         prv[i] = -1
         nxt[i] = head[p]
@@ -227,12 +252,21 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
             prv[head[p]] = i
         head[p] = i
         w = winner[p]
-        if w < 0 or _before(P, rank, i, w):
+        if w < 0 or _nearer(P, rank, i, w, axis, c, s):
             winner[p] = i
+
+    def find(p, c, s):
+        best = -1
+        q = head[p]
+        while q >= 0:
+            if best < 0 or _nearer(P, rank, q, best, axis, c, s):
+                best = q
+            q = nxt[q]
+        return best
 
     for i in range(n):
         if start[i] >= 0:
-            insert(i, start[i])
+            insert(i, start[i], c, s)
     for p in range(hw):
         shown[p] = winner[p]
     first = shown.copy()
@@ -243,10 +277,15 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
     f_from.clear(), f_to.clear(), f_pixel.clear(), f_point.clear()
     open_from = np.full(hw, -1, np.int64)  # the image from which a pixel's fragile records hold
     open_count = np.zeros(hw, np.int64)
-    if axis == 2:
+    ties = {np.int64(0): True}  # the pairs of points whose depths are within rounding now
+    ties.clear()
+    for x in tied:
+        ties[x] = True
+    scans = axis == 2 or axis == 3 or axis == 4
+    if scans:
         for p in range(hw):
-            _fragile_scan(P, rank, p, head, nxt, winner, lo, 0, open_from, open_count, f_from, f_to, f_pixel,
-                          f_point)  # fmt: skip
+            _fragile_scan(P, rank, axis, ties, p, head, nxt, winner, lo, 0, open_from, open_count, f_from, f_to,
+                          f_pixel, f_point)  # fmt: skip
     member = np.zeros(n, np.bool_)
     u_record, u_pose = [0], [0.0]  # a group's record, and the pose up to which it holds
     u_record.clear(), u_pose.clear()
@@ -259,17 +298,34 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
         t = times[j] if j < m else np.inf
         if g < g_start.shape[0] and g_start[g] < t:  # a group's records, from the state at its start
             w_rec.append(len(f_from))
-            _group_records(P, rank, head, nxt, member, g_point[g_row[g] : g_row[g + 1]],
+            c, s = _entries(g_start[g])
+            _group_records(P, rank, axis, c, s, ties, head, nxt, member, g_point[g_row[g] : g_row[g + 1]],
                            g_pixel[g_row[g] : g_row[g + 1]], len(starts) - 1, g_end[g], f_from, f_to, f_pixel,
                            f_point, u_record, u_pose)  # fmt: skip
             g += 1
             continue
         k = j
         ntouched = 0
+        c, s = _entries(t)
         while k < m and times[k] == t:
             i = points[k]
             new = targets[k]
             k += 1
+            if new <= -2:  # rx, ry: two depths within rounding from now on, or no longer
+                j2 = (-2 - new) % n
+                key = min(i, j2) * n + max(i, j2)
+                if -2 - new >= n:
+                    ties[key] = True
+                elif key in ties:
+                    ties.pop(key)
+                for p in (pix[i], pix[j2]):
+                    if p >= 0:
+                        winner[p] = find(p, c, s)
+                        if not dirty[p]:
+                            dirty[p] = True
+                            touched[ntouched] = p
+                            ntouched += 1
+                continue
             old = pix[i]
             if new == old:
                 continue
@@ -282,19 +338,13 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
                     prv[nxt[i]] = prv[i]
                 pix[i] = -1
                 if winner[old] == i:
-                    best = -1
-                    q = head[old]
-                    while q >= 0:
-                        if best < 0 or _before(P, rank, q, best):
-                            best = q
-                        q = nxt[q]
-                    winner[old] = best
+                    winner[old] = find(old, c, s)
                 if not dirty[old]:
                     dirty[old] = True
                     touched[ntouched] = old
                     ntouched += 1
             if new >= 0:
-                insert(i, new)
+                insert(i, new, c, s)
                 if not dirty[new]:
                     dirty[new] = True
                     touched[ntouched] = new
@@ -311,7 +361,7 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
                 c_image.append(len(starts) - 1)
                 c_pixel.append(p)
                 c_winner.append(winner[p])
-        if axis == 2:  # the touched pixels' fragile records closed, and opened anew from this pose on
+        if scans:  # the touched pixels' fragile records closed, and opened anew from this pose on
             cur = len(starts) - 1
             end = cur if changed else cur + 1  # a record closed inside an image covers all of it
             for q in range(ntouched):
@@ -326,8 +376,8 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
                             left -= 1
                     open_from[p] = -1
                     open_count[p] = 0
-                _fragile_scan(P, rank, p, head, nxt, winner, lo, cur, open_from, open_count, f_from, f_to,
-                              f_pixel, f_point)  # fmt: skip
+                _fragile_scan(P, rank, axis, ties, p, head, nxt, winner, lo, cur, open_from, open_count, f_from,
+                              f_to, f_pixel, f_point)  # fmt: skip
         j = k
     m_images = len(starts)
     begins = np.array(starts)
@@ -346,12 +396,32 @@ def _sweep(P, rank, axis, lo, times, points, targets, start, g_start, g_end, g_r
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _group_records(
-    P, rank, head, nxt, member, g_point, g_pixel, image, until, f_from, f_to, f_pixel, f_point, u_record, u_pose
+    P,
+    rank,
+    axis,
+    c,
+    s,
+    ties,
+    head,
+    nxt,
+    member,
+    g_point,
+    g_pixel,
+    image,
+    until,
+    f_from,
+    f_to,
+    f_pixel,
+    f_point,
+    u_record,
+    u_pose,
 ):  # pragma: no cover - compiled
     """Records from ``image`` on (until the pose ``until``) of the colours each pixel ``g_pixel``
     may show while the group's points ``g_point`` may be in any of their pixels (-1: off the
     image): each of those points that may be there, and the nearest other point there (the
-    background if none), a pixel's records nearest first (the background last)."""
+    background if none), and on rx and ry each point whose depth is within rounding of one of
+    those (``ties``), a pixel's records nearest first (the background last)."""
+    n = P.shape[0]
     for r in range(g_point.shape[0]):
         member[g_point[r]] = True
     for r in range(g_pixel.shape[0]):
@@ -366,16 +436,29 @@ def _group_records(
         best = -1
         q = head[p]
         while q >= 0:
-            if not member[q] and (best < 0 or _before(P, rank, q, best)):
+            if not member[q] and (best < 0 or _nearer(P, rank, q, best, axis, c, s)):
                 best = q
             q = nxt[q]
         options = [best]
         for r2 in range(g_pixel.shape[0]):
             if g_pixel[r2] == p and g_point[r2] not in options:
                 options.append(g_point[r2])
+        if len(ties):  # rx, ry: a point whose depth is within rounding of an option's may show instead
+            q = head[p]
+            while q >= 0:
+                if q not in options:
+                    for o in options:
+                        if o >= 0 and (min(o, q) * n + max(o, q)) in ties:
+                            options.append(q)
+                            break
+                q = nxt[q]
         for x in range(1, len(options)):  # nearest first: the z-buffer's order
             y = x
-            while y > 0 and options[y] >= 0 and (options[y - 1] < 0 or _before(P, rank, options[y], options[y - 1])):
+            while (
+                y > 0
+                and options[y] >= 0
+                and (options[y - 1] < 0 or _nearer(P, rank, options[y], options[y - 1], axis, c, s))
+            ):
                 options[y - 1], options[y] = options[y], options[y - 1]
                 y -= 1
         for q in options:
@@ -391,22 +474,28 @@ def _group_records(
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fragile_scan(
-    P, rank, p, head, nxt, winner, lo, image, open_from, open_count, f_from, f_to, f_pixel, f_point
+    P, rank, axis, ties, p, head, nxt, winner, lo, image, open_from, open_count, f_from, f_to, f_pixel, f_point
 ):  # pragma: no cover - compiled
-    """Open a record for each point of pixel ``p`` that rounding may hand it to from ``image`` on:
-    of lower rank than the winner ``w`` (it then wins a tie) and deeper by at most the spacing of
-    the floats above its largest computed depth ``fl(Z_q - lo)``. Two depths further apart never
-    round to one value: if ``fl(Z_w - t) = fl(Z_q - t) = g``, each is within half the spacing
-    around ``g`` of it, so ``Z_q - Z_w`` is at most the spacing above ``g <= fl(Z_q - lo)``."""
+    """Open a record for each point of pixel ``p`` that rounding may hand it to from ``image`` on.
+    On tz: of lower rank than the winner ``w`` (it then wins a tie) and deeper by at most the
+    spacing of the floats above its largest computed depth ``fl(Z_q - lo)``. Two depths further
+    apart never round to one value: if ``fl(Z_w - t) = fl(Z_q - t) = g``, each is within half the
+    spacing around ``g`` of it, so ``Z_q - Z_w`` is at most the spacing above ``g <= fl(Z_q - lo)``.
+    On rx and ry: each point whose depth is within rounding of the winner's now (``ties``)."""
     w = winner[p]
     if w < 0:
         return
+    n = P.shape[0]
     zw = P[w, 2]
     q = head[p]
     while q >= 0:
-        zq = P[q, 2]
-        top = zq - lo
-        if zq > zw and rank[q] < rank[w] and zq - zw <= np.nextafter(top, np.inf) - top:
+        if axis != 2:
+            may = q != w and (min(q, w) * n + max(q, w)) in ties
+        else:
+            zq = P[q, 2]
+            top = zq - lo
+            may = zq > zw and rank[q] < rank[w] and zq - zw <= np.nextafter(top, np.inf) - top
+        if may:
             f_from.append(image)
             f_to.append(-1)
             f_pixel.append(p)
@@ -463,9 +552,10 @@ class Enumeration:
     width: int
     events: int  # crossings located
     fragile: np.ndarray  # (F, 4): from image, to image (exclusive), pixel, a point rounding may hand it to (tz)
-    # rz: window w's records are rows window_records[w] to window_records[w + 1] of ``fragile`` (a
+    # a rotation: window w's records are rows window_records[w] to window_records[w + 1] of ``fragile`` (a
     # pixel's nearest first); its free points and the pixels each may occupy (-1: off the image)
-    # rows window_rows[w] to window_rows[w + 1] of ``free`` (point, pixel)
+    # rows window_rows[w] to window_rows[w + 1] of ``free`` (point, pixel, unit: the points of one unit
+    # take their r-th pixels together, :meth:`free_points`)
     window_records: np.ndarray
     window_rows: np.ndarray
     free: np.ndarray
@@ -499,24 +589,28 @@ class Enumeration:
         return f[(f[:, 0] < stop) & (f[:, 1] > start)] if len(f) else f
 
     def windows_at(self, k: int) -> list[int]:
-        """The windows (rz) whose records hold image ``k``."""
+        """The windows (a rotation) whose records hold image ``k``."""
         r = self.window_records
         held = np.nonzero(r[1:] > r[:-1])[0]
         first = self.fragile[r[held]] if len(held) else np.empty((0, 4), np.int64)
         return held[(first[:, 0] <= k) & (first[:, 1] > k)].tolist()
 
-    def free_points(self, w: int) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
-        """Window ``w`` (rz): each free point's pixels (-1: off the image), and per pixel of its
+    def free_points(self, w: int) -> tuple[dict[int, list[int]], dict[int, list[int]], dict[int, list[int]]]:
+        """Window ``w`` (a rotation): each free point's pixels (-1: off the image), per pixel of its
         records the points that may show there, nearest first (-1: the background): every free
-        point that may be there, and the nearest other point, which is there throughout."""
+        point that may be there, and the nearest other point, which is there throughout; and the
+        free points in units: points on one line along the rotation's axis, whose level the
+        renderer computes from the same numbers, are in their ``r``-th pixels together."""
         pixels: dict[int, list[int]] = {}
-        for q, p in self.free[self.window_rows[w] : self.window_rows[w + 1]].tolist():
-            if p not in pixels.setdefault(q, []):
-                pixels[q].append(p)
+        units: dict[int, list[int]] = {}
+        for q, p, unit in self.free[self.window_rows[w] : self.window_rows[w + 1]].tolist():
+            pixels.setdefault(q, []).append(p)  # a pixel per level: a unit's points' lists align
+            if q not in units.setdefault(unit, []):
+                units[unit].append(q)
         ranked: dict[int, list[int]] = {}
         for _, _, p, q in self.fragile[self.window_records[w] : self.window_records[w + 1]].tolist():
             ranked.setdefault(p, []).append(q)
-        return pixels, ranked
+        return pixels, ranked, units
 
     def variants(self, k: int, limit: int) -> np.ndarray | None:
         """Image ``k`` with every combination of the points its fragile records allow at their
@@ -595,8 +689,8 @@ def enumerate_images(
     K = torch.as_tensor(K, dtype=torch.float64)
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     a = axis_index(axis)
-    if axis == "rz":
-        from mrcert.core.verification.rotation_events import rz_moves
+    if axis in ROTATIONS:
+        from mrcert.core.verification.rotation_events import rotation_moves
 
         # Points at one position (bit for bit) land together at every pose and at one depth, where
         # the lowest rank wins: the others never show, and would only blur the records.
@@ -605,15 +699,17 @@ def enumerate_images(
         keep = np.sort(order[np.unique(keys, return_index=True)[1]])
         if len(keep) < len(P):
             P, table, ranks = np.ascontiguousarray(P[keep]), np.ascontiguousarray(table[keep]), ranks[keep]
-        start, times, pts, targets, groups, events = rz_moves(P, K, float(lo), float(hi), int(height), int(width))
+        start, times, pts, targets, groups, events, tied, units = rotation_moves(P, K, axis, float(lo), float(hi),
+                                                                          int(height), int(width))  # fmt: skip
     else:
         times, pts = _events(P, a, float(lo), float(hi), fx, fy, cx, cy, int(height), int(width))
         start, targets = _translation_moves(P, a, float(lo), times, pts, fx, fy, cx, cy, int(height), int(width))
         none = np.empty(0, np.int64)
-        groups, events = (np.empty(0), np.empty(0), np.zeros(1, np.int64), none, none), len(times)
+        groups, events, tied = (np.empty(0), np.empty(0), np.zeros(1, np.int64), none, none), len(times), none
+        units = none
     first, starts, c_image, c_pixel, c_winner, fragile, records = _sweep(
-        P, ranks, a, float(lo), times, pts, targets, start, *groups, int(height), int(width)
+        P, ranks, a, float(lo), times, pts, targets, start, *groups, tied, int(height), int(width)
     )
     return Enumeration(axis, float(lo), float(hi), starts, first, c_image, c_pixel, c_winner, table,
                        float(background), int(height), int(width), events, fragile, records, groups[2],
-                       np.column_stack([groups[3], groups[4]]).astype(np.int64))  # fmt: skip
+                       np.column_stack([groups[3], groups[4], units]).astype(np.int64))  # fmt: skip
