@@ -15,7 +15,15 @@ import torch.nn.functional as F
 from torch import nn
 
 from mrcert.core.methods.base import BaseClassifier
-from mrcert.core.methods.enumeration import VARIANTS, ImageEnumeration, _groups, _low_variants, _point_groups
+from mrcert.core.methods.enumeration import (
+    VARIANTS,
+    ImageEnumeration,
+    _Box,
+    _change,
+    _groups,
+    _low_variants,
+    _point_groups,
+)
 from mrcert.core.models import Normalize, SmallCNN, class_margins
 from mrcert.core.verification.events import enumerate_images
 from mrcert.core.verification.incremental import IncrementalNetwork
@@ -322,6 +330,57 @@ def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_b
                         variant.view(3, -1)[:, where] = values
                 assert margin(model, variant, c)[0] <= scale + rounding
     assert _low_variants(logits, changes, c, float(margins[70])) is None  # more than VARIANTS
+
+
+def test_a_group_with_too_many_images_is_boxed_and_no_image_below_the_margin_is_missed():
+    """Beside four fragile pixels (each its colour or one of two others), a block of twelve
+    neighbours, each its colour or one a little off it (4,095 images, more than a group's changes
+    are computed for), is one box bounded as a whole: at a threshold above the margin of any of
+    the few pixels' 81 images, that image with the block changed may be below it too, so the
+    answer is open (None), never a list of images that misses one; below the bound of every
+    image, nothing is open, and none of 4,000 images sampled over all sixteen pixels' choices
+    (each classified whole) is below it."""
+    torch.manual_seed(4)
+    model = randomised(Local(), 4)
+    e = enumeration(3)
+    image = torch.from_numpy(e.images(len(e) // 2, len(e) // 2 + 1))
+    few = [5 * W + 5, 6 * W + 5, 7 * W + 6, 21 * W + 36]
+    block = [r * W + col for r in (14, 15, 16) for col in (20, 21, 22, 23)]
+    pixels = np.array(few + block)
+    g = torch.Generator().manual_seed(1)
+    flat = image.view(3, -1)
+    options = [[torch.rand(3, generator=g) for _ in range(2)] for _ in few]
+    options += [[(flat[:, p] + 0.0004 * torch.rand(3, generator=g) - 0.0002).clamp(0, 1)] for p in block]
+    net = IncrementalNetwork.of(model)
+    rng = np.random.default_rng(0)
+    with torch.inference_mode():
+        logits = net.start(image)[0].clone()
+        c = int(logits.argmax())
+        assert net.affine()
+        groups = _groups(net, pixels, options)
+        boxed = [x for x in groups if isinstance(x, _Box)]
+        assert len(boxed) == 1 and sorted(boxed[0].pixels.tolist()) == block
+        changes = [_change(net, x, c) for x in groups]
+        picks = [rng.integers(0, len(o) + 1, 4000) for o in options]  # 0: the current colour
+        samples = image.repeat(4000, 1, 1, 1)
+        for p, o, pick in zip(pixels.tolist(), options, picks, strict=True):
+            for r, colour in enumerate(o, 1):
+                samples.view(4000, 3, -1)[torch.from_numpy(pick == r), :, p] = colour
+        margins = margin(model, samples, c)
+        exact = image.repeat(81, 1, 1, 1)  # the few pixels' images, the block as it is
+        for x, combo in enumerate(itertools.product(*([None, *o] for o in options[:4]))):
+            for p, colour in zip(few, combo, strict=True):
+                if colour is not None:
+                    exact[x].view(3, -1)[:, p] = colour
+        levels = np.sort(margin(model, exact, c))
+    rounding = 1e-6 * max(1.0, float(logits.abs().max()))  # float32 sums in another order
+    for n in (1, 5, 10, 40):  # an image below: one the box's bound leaves open
+        scale = float(levels[n - 1] + levels[n]) / 2
+        assert _low_variants(logits, changes, c, scale) is None
+    box = float(-changes[groups.index(boxed[0])].min())
+    scale = float(levels[0]) - box - (float(levels[-1]) - float(levels[0])) - rounding
+    assert _low_variants(logits, changes, c, scale) == []  # below every bound: nothing open
+    assert (margins > scale + rounding).all()  # and no sampled image below it
 
 
 def test_a_window_s_images_found_unit_by_unit_are_exactly_those_of_every_choice_of_its_units():

@@ -18,7 +18,8 @@ interval is therefore decided by those images alone, and this method decides it 
   by classifying each (with an affine tail, as the nominal logits plus one change per group of
   pixels whose windows meet, :func:`_groups`; on a rotation the images of each recorded window
   unit by unit, each free point -- or line of twins along the rotation's axis -- in one of its
-  pixels or shown nowhere, :func:`_point_groups`);
+  pixels or shown nowhere, :func:`_point_groups`, with the records beside the windows pixel by
+  pixel); a group with too many images is one box, bounded as a whole (:class:`_Box`);
 * optionally (``run_images`` below the number of images), a longer run first gets its exact hull
   -- per pixel and channel, the least and the greatest value the run's images take -- and bound
   propagation (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over
@@ -48,6 +49,8 @@ from typing import ClassVar
 import numpy as np
 import torch
 from omegaconf import DictConfig
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from mrcert.core.axes import axis_index, unit
 from mrcert.core.methods.base import (
@@ -60,7 +63,7 @@ from mrcert.core.methods.base import (
 )
 from mrcert.core.models import class_margins, predicted
 from mrcert.core.verification.events import AXES, Enumeration, enumerate_images, record_options
-from mrcert.core.verification.incremental import IncrementalNetwork, _meets
+from mrcert.core.verification.incremental import IncrementalNetwork
 from mrcert.core.verification.network import BoundNetwork
 from mrcert.core.verification.rotation_events import ROTATIONS
 from mrcert.errors import ConfigError, MrcertError
@@ -338,18 +341,16 @@ class _Run:
                 if float(least.min()) <= scale:
                     if groups is None:  # each window's groups and their images, from the whole image
                         net.start(torch.from_numpy(e.images(k, k + 1)))
-                        # a rotation: the images of each window apart (one holds at any pose), point by point
+                        # a rotation: the images of each window apart (one holds at any pose), point by
+                        # point, with the records beside every window's (rx, ry: two depths within
+                        # rounding) pixel by pixel, groups whose changes may meet boxed together
                         windows = e.windows_at(u)
-                        if sum(e.window_records[w + 1] - e.window_records[w] for w in windows) < len(here):
-                            windows = []  # records beside the windows' (rx, ry: depths within rounding)
-                        groups = [_point_groups(net, *e.free_points(w), table) for w in windows] or [
-                            _groups(net, pixels, options)
-                        ]
-                        if any(g is None for g in groups):  # too many to classify
-                            return False
+                        beside = _groups(net, *_allowed(net, e.beside_windows(u, windows), table)[:2])
+                        groups = [_joint(net, _point_groups(net, *e.free_points(w), table), beside)
+                                  for w in windows] or [beside]  # fmt: skip
                         net.offsets(pixels, low, high, c)
                     before = net.deltas
-                    changes = [[torch.cat([net.delta(w, v) for w, v in choices]) for choices in one] for one in groups]
+                    changes = [[_change(net, choices, c) for choices in one] for one in groups]
                     self.classified += net.deltas - before  # each change computed: a variant classified
                     reach = net.reach()
                     for one, change in zip(groups, changes, strict=True):
@@ -526,19 +527,112 @@ def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
     return pixels, options, low, high
 
 
-def _groups(net: IncrementalNetwork, pixels: np.ndarray, options: list) -> list[list] | None:
+@dataclass(frozen=True)
+class _Box:
+    """A group of pixels with too many images to classify: per pixel and channel, the least and
+    the greatest value any of them gives it (C, n), the current one included; an interval bound
+    over the box stands for them all."""
+
+    pixels: np.ndarray
+    low: torch.Tensor
+    high: torch.Tensor
+
+
+def _groups(net: IncrementalNetwork, pixels: np.ndarray, options: list) -> list:
     """The fragile pixels in groups that reach disjoint boxes of the affine tail's first layer,
     each group's images beside the current one as (pixels changed, their colours (C, n)) (as
-    :func:`_combinations`). A change of one group leaves the values the others reach as they are,
-    so (the tail being affine) the logits of any image the records allow are the current ones
-    plus one change per group. None where a group has more than :data:`GROUP_VARIANTS` images."""
-    groups = []
+    :func:`_combinations`), or a :class:`_Box` where a group has more than :data:`GROUP_VARIANTS`
+    images. A change of one group leaves the values the others reach as they are, so (the tail
+    being affine) the logits of any image the records allow are the current ones plus one change
+    per group."""
+    groups: list = []
     for js in _clusters([net.boundary_box(pixels[j : j + 1]) for j in range(len(pixels))]):
         choices = _combinations(pixels[js], [options[j] for j in js], GROUP_VARIANTS)
-        if choices is None:
-            return None
-        groups.append(choices)
+        groups.append(_boxed(net, [[(pixels[j : j + 1], o[:, None]) for o in options[j]] for j in js])
+                      if choices is None else choices)  # fmt: skip
     return groups
+
+
+def _boxed(net: IncrementalNetwork, groups: list) -> _Box:
+    """One box over ``groups`` (each a list of images as (pixels, their colours (C, n)), or a
+    :class:`_Box`): per pixel, the current colour and every colour a group may give it."""
+    current = net.values[0].reshape(net.values[0].shape[1], -1).cpu()
+    low: dict[int, torch.Tensor] = {}
+    high: dict[int, torch.Tensor] = {}
+
+    def widen(pixels: np.ndarray, lo: torch.Tensor, hi: torch.Tensor) -> None:
+        for j, p in enumerate(pixels.tolist()):
+            if p not in low:
+                low[p], high[p] = current[:, p].clone(), current[:, p].clone()
+            low[p] = torch.minimum(low[p], lo[:, j].to(current.dtype))
+            high[p] = torch.maximum(high[p], hi[:, j].to(current.dtype))
+
+    for group in groups:
+        if isinstance(group, _Box):
+            widen(group.pixels, group.low, group.high)
+        else:
+            for pixels, values in group:
+                widen(pixels, values, values)
+    where = sorted(low)
+    return _Box(np.array(where, np.int64), torch.stack([low[p] for p in where], 1),
+                torch.stack([high[p] for p in where], 1))  # fmt: skip
+
+
+def _pixels_of(group) -> np.ndarray:
+    """Every pixel a group (its images, or a :class:`_Box`) may change."""
+    if isinstance(group, _Box):
+        return group.pixels
+    return np.unique(np.concatenate([pixels for pixels, _ in group])) if group else np.empty(0, np.int64)
+
+
+def _joint(net: IncrementalNetwork, own: list, beside: list) -> list:
+    """A window's groups (:func:`_point_groups`) with the groups of the records beside it
+    (:func:`_groups`), which hold at the same poses: a group beside whose changes may meet one of
+    the window's (a pixel's box of the affine tail's first layer meeting one of the other's) is
+    boxed with it (:func:`_boxed`), so the groups left reach disjoint boxes and their changes add."""
+    if not own or not beside:
+        return own + beside
+    parts = own + beside
+    boxes = [_pixel_boxes(net, _pixels_of(g)) for g in parts]
+    parent = list(range(len(parts)))
+
+    def root(j: int) -> int:
+        while parent[j] != j:
+            j = parent[j]
+        return j
+
+    for i in range(len(own)):
+        for j in range(len(own), len(parts)):
+            a, b = boxes[i], boxes[j]
+            if len(a) and len(b) and _meets_any(a, b):
+                parent[root(i)] = root(j)
+    members: dict[int, list[int]] = {}
+    for j in range(len(parts)):
+        members.setdefault(root(j), []).append(j)
+    return [parts[js[0]] if len(js) == 1 else _boxed(net, [parts[j] for j in js]) for js in members.values()]
+
+
+def _pixel_boxes(net: IncrementalNetwork, pixels: np.ndarray) -> np.ndarray:
+    """(n, 4): the box of the affine tail's first layer each pixel's change reaches (those that
+    reach none left out)."""
+    boxes = [net.boundary_box(pixels[j : j + 1]) for j in range(len(pixels))]
+    return np.array([b for b in boxes if b is not None], np.int64).reshape(-1, 4)
+
+
+def _meets_any(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether a box of ``a`` (n, 4) meets one of ``b`` (m, 4), as
+    :func:`mrcert.core.verification.incremental._meets` decides for two."""
+    A, B = a[:, None, :], b[None, :, :]
+    return bool(((A[..., 0] < B[..., 1]) & (B[..., 0] < A[..., 1]) & (A[..., 2] < B[..., 3])
+                 & (B[..., 2] < A[..., 3])).any())  # fmt: skip
+
+
+def _change(net: IncrementalNetwork, group, c: int) -> torch.Tensor:
+    """A group's changes for :func:`_low_variants`: of the logits, one row per image (n, K); of a
+    :class:`_Box`, per class ``j`` the least change of ``y_c - y_j`` over it (K,)."""
+    if isinstance(group, _Box):
+        return net.offsets(group.pixels, group.low, group.high, c).cpu()
+    return torch.cat([net.delta(w, v) for w, v in group])
 
 
 def _point_groups(
@@ -547,7 +641,7 @@ def _point_groups(
     ranked: dict[int, list[int]],
     units: dict[int, list[int]],
     table: torch.Tensor,
-) -> list[list] | None:
+) -> list:
     """A window's images (a rotation), unit by unit: each unit of free points (one point, or
     twins on a line along the rotation's axis, which take their ``r``-th pixels together) in one
     of its choices (a pixel per point, -1: off the image), each pixel then showing the nearest of
@@ -557,8 +651,8 @@ def _point_groups(
     colours (C, n)), every pixel any of its points may occupy set, so each holds beside any
     current image. Some k units with two choices each make at most 2^k images, where their
     pixels' colours would make far more, and fewer where a nearer point hides them: the images
-    are found unit by unit, equal ones kept once. None where a group has more than
-    :data:`GROUP_VARIANTS`."""
+    are found unit by unit, equal ones kept once; a group with more than :data:`GROUP_VARIANTS`
+    is a :class:`_Box` over every point that may show at each of its pixels."""
     free = set(pixels)
     members_of = []
     for qs in units.values():
@@ -592,8 +686,12 @@ def _point_groups(
                     grown.add(tuple(new))
             states = grown
             if len(states) > GROUP_VARIANTS:
-                return None
+                break
         pix = np.array(where, np.int64)
+        if len(states) > GROUP_VARIANTS:  # every point that may show at each pixel, boxed
+            shows = [(pix[x : x + 1], table[q][:, None]) for x, p in enumerate(where) for q in ranked[p]]
+            groups.append(_boxed(net, [shows]))
+            continue
         groups.append([(pix, table[[ranked[p][i] for p, i in zip(where, s, strict=True)]].T.contiguous())
                        for s in sorted(states)])  # fmt: skip
     return groups
@@ -601,20 +699,20 @@ def _point_groups(
 
 def _clusters(boxes: list) -> list[list[int]]:
     """The indices of ``boxes`` (r0, r1, c0, c1; None: reaches nothing) in groups, two whose
-    boxes meet in one."""
-    parent = list(range(len(boxes)))
-
-    def root(j: int) -> int:
-        while parent[j] != j:
-            j = parent[j]
-        return j
-
-    for i, j in itertools.combinations(range(len(boxes)), 2):
-        if boxes[i] is not None and boxes[j] is not None and _meets(boxes[i], boxes[j]):
-            parent[root(i)] = root(j)
+    boxes meet in one (in order of their first members)."""
+    n = len(boxes)
+    some = [j for j in range(n) if boxes[j] is not None]
+    meet = np.zeros((n, n), bool)
+    if some:
+        b = np.array([boxes[j] for j in some], np.int64)
+        A, B = b[:, None, :], b[None, :, :]
+        meet[np.ix_(some, some)] = (
+            (A[..., 0] < B[..., 1]) & (B[..., 0] < A[..., 1]) & (A[..., 2] < B[..., 3]) & (B[..., 2] < A[..., 3])
+        )
+    _, labels = connected_components(csr_matrix(meet), directed=False)
     members: dict[int, list[int]] = {}
-    for j in range(len(boxes)):
-        members.setdefault(root(j), []).append(j)
+    for j in range(n):
+        members.setdefault(int(labels[j]), []).append(j)
     return list(members.values())
 
 
@@ -622,11 +720,14 @@ def _low_variants(logits: torch.Tensor, changes: list[torch.Tensor], c: int, sca
     """The images, one choice per group (row ``r`` of its changes, -1 for none; not all none),
     whose margin -- the logits (K,) plus the chosen rows of each group's changes (n_g, K) -- is at
     most ``scale``: found group by group, a partial choice dropped as soon as even the least
-    changes of the groups left keep every class's margin above ``scale``. None where there are
-    more than :data:`VARIANTS`."""
+    changes of the groups left keep every class's margin above ``scale``. A box's changes (K,) are
+    the least change of each margin over it (:func:`_change`), not an image's: None where a
+    margin at most ``scale`` needs one, or where there are more than :data:`VARIANTS`."""
     base = (logits[c] - logits).double().cpu()
-    rows = [torch.cat([torch.zeros(1, len(base), dtype=torch.float64), (d[:, c : c + 1] - d).double().cpu()])
+    zero = torch.zeros(1, len(base), dtype=torch.float64)
+    rows = [torch.cat([zero, d.double().cpu()[None] if d.ndim == 1 else (d[:, c : c + 1] - d).double().cpu()])
             for d in changes]  # fmt: skip
+    boxes = {g for g, d in enumerate(changes) if d.ndim == 1}
     rest = [torch.zeros(len(base), dtype=torch.float64)]
     for m in reversed(rows):
         rest.insert(0, rest[0] + m.min(0).values)
@@ -638,6 +739,8 @@ def _low_variants(logits: torch.Tensor, changes: list[torch.Tensor], c: int, sca
         while stack:
             g, total, combo = stack.pop()
             if g == len(rows):
+                if any(combo[b] > 0 for b in boxes):  # a bound, not an image, leaves it open
+                    return None
                 if any(r > 0 for r in combo):
                     found.add(tuple(r - 1 for r in combo))
                     if len(found) > VARIANTS:

@@ -595,6 +595,17 @@ class Enumeration:
         first = self.fragile[r[held]] if len(held) else np.empty((0, 4), np.int64)
         return held[(first[:, 0] <= k) & (first[:, 1] > k)].tolist()
 
+    def beside_windows(self, k: int, windows: list[int]) -> np.ndarray:
+        """The fragile records holding image ``k`` that are not the ``windows``' (on rx and ry:
+        two depths within rounding of each other, a pair along the whole interval among them)."""
+        f = self.fragile
+        if not len(f):
+            return f
+        held = (f[:, 0] <= k) & (f[:, 1] > k)
+        for w in windows:
+            held[self.window_records[w] : self.window_records[w + 1]] = False
+        return f[held]
+
     def free_points(self, w: int) -> tuple[dict[int, list[int]], dict[int, list[int]], dict[int, list[int]]]:
         """Window ``w`` (a rotation): each free point's pixels (-1: off the image), per pixel of its
         records the points that may show there, nearest first (-1: the background): every free
