@@ -594,22 +594,11 @@ def _joint(net: IncrementalNetwork, own: list, beside: list) -> list:
         return own + beside
     parts = own + beside
     boxes = [_pixel_boxes(net, _pixels_of(g)) for g in parts]
-    parent = list(range(len(parts)))
-
-    def root(j: int) -> int:
-        while parent[j] != j:
-            j = parent[j]
-        return j
-
+    meet = np.zeros((len(parts), len(parts)), bool)
     for i in range(len(own)):
         for j in range(len(own), len(parts)):
-            a, b = boxes[i], boxes[j]
-            if len(a) and len(b) and _meets_any(a, b):
-                parent[root(i)] = root(j)
-    members: dict[int, list[int]] = {}
-    for j in range(len(parts)):
-        members.setdefault(root(j), []).append(j)
-    return [parts[js[0]] if len(js) == 1 else _boxed(net, [parts[j] for j in js]) for js in members.values()]
+            meet[i, j] = len(boxes[i]) > 0 and len(boxes[j]) > 0 and bool(_box_meets(boxes[i], boxes[j]).any())
+    return [parts[js[0]] if len(js) == 1 else _boxed(net, [parts[j] for j in js]) for js in _components(meet)]
 
 
 def _pixel_boxes(net: IncrementalNetwork, pixels: np.ndarray) -> np.ndarray:
@@ -619,12 +608,20 @@ def _pixel_boxes(net: IncrementalNetwork, pixels: np.ndarray) -> np.ndarray:
     return np.array([b for b in boxes if b is not None], np.int64).reshape(-1, 4)
 
 
-def _meets_any(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether a box of ``a`` (n, 4) meets one of ``b`` (m, 4), as
+def _box_meets(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, m): whether box ``i`` of ``a`` (n, 4) meets box ``j`` of ``b`` (m, 4), as
     :func:`mrcert.core.verification.incremental._meets` decides for two."""
     A, B = a[:, None, :], b[None, :, :]
-    return bool(((A[..., 0] < B[..., 1]) & (B[..., 0] < A[..., 1]) & (A[..., 2] < B[..., 3])
-                 & (B[..., 2] < A[..., 3])).any())  # fmt: skip
+    return (A[..., 0] < B[..., 1]) & (B[..., 0] < A[..., 1]) & (A[..., 2] < B[..., 3]) & (B[..., 2] < A[..., 3])
+
+
+def _components(meet: np.ndarray) -> list[list[int]]:
+    """The indices in groups joined by ``meet`` (n, n), in order of their first members."""
+    _, labels = connected_components(csr_matrix(meet), directed=False)
+    members: dict[int, list[int]] = {}
+    for j, label in enumerate(labels.tolist()):
+        members.setdefault(label, []).append(j)
+    return list(members.values())
 
 
 def _change(net: IncrementalNetwork, group, c: int) -> torch.Tensor:
@@ -705,15 +702,8 @@ def _clusters(boxes: list) -> list[list[int]]:
     meet = np.zeros((n, n), bool)
     if some:
         b = np.array([boxes[j] for j in some], np.int64)
-        A, B = b[:, None, :], b[None, :, :]
-        meet[np.ix_(some, some)] = (
-            (A[..., 0] < B[..., 1]) & (B[..., 0] < A[..., 1]) & (A[..., 2] < B[..., 3]) & (B[..., 2] < A[..., 3])
-        )
-    _, labels = connected_components(csr_matrix(meet), directed=False)
-    members: dict[int, list[int]] = {}
-    for j in range(n):
-        members.setdefault(int(labels[j]), []).append(j)
-    return list(members.values())
+        meet[np.ix_(some, some)] = _box_meets(b, b)
+    return _components(meet)
 
 
 def _low_variants(logits: torch.Tensor, changes: list[torch.Tensor], c: int, scale: float) -> list[tuple] | None:
