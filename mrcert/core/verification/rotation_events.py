@@ -191,7 +191,7 @@ def _camera_bound(X, Y, Z, axis, which, c_lo, c_hi, s_lo, s_hi, high):  # pragma
     return s * X + c * Z
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _corner(P, i, j, axis, coord, t1, t2, high, fx, fy, cx, cy, size):  # pragma: no cover - compiled
     """The greatest (``high``) or least level the renderer can give point ``i``'s column (``coord``
     0) or row (1) at any pose in ``[t1, t2]``: its own float64 operations at the corner of
@@ -424,7 +424,7 @@ def _point_bands(P, i, axis, lo, hi, fx, fy, cx, cy, height, width, out, start, 
     return count
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _certain(P, i, axis, coord, t1, t2, level, fx, fy, cx, cy, size):  # pragma: no cover - compiled
     """Whether point ``i``'s level in ``coord`` is ``level`` at every pose of ``[t1, t2]``."""
     return (_corner(P, i, -1, axis, coord, t1, t2, False, fx, fy, cx, cy, size) == level
