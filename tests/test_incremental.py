@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+import mrcert.core.methods.enumeration as enumeration_method
 from mrcert.core.methods.base import BaseClassifier
 from mrcert.core.methods.enumeration import (
     VARIANTS,
@@ -22,7 +23,9 @@ from mrcert.core.methods.enumeration import (
     _change,
     _groups,
     _low_variants,
+    _open_images,
     _point_groups,
+    _split,
 )
 from mrcert.core.models import Normalize, SmallCNN, class_margins
 from mrcert.core.verification.events import enumerate_images
@@ -303,7 +306,7 @@ def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_b
         c = int(logits.argmax())
         groups = _groups(net, pixels, options)
         assert 1 < len(groups) < len(pixels)  # neighbours share a group, loners do not
-        changes = [torch.cat([net.delta(where, values) for where, values in choices]) for choices in groups]
+        changes = [_change(net, choices, c) for choices in groups]
         every = []  # every image the pixels allow, classified whole
         for combo in itertools.product(*([None, *o] for o in options)):
             if any(colour is not None for colour in combo):
@@ -319,8 +322,8 @@ def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_b
         count = int(gaps[gaps >= least][0])
         assert count <= VARIANTS
         scale = float(margins[count - 1] + margins[count]) / 2
-        found = _low_variants(logits, changes, c, scale)
-        assert found is not None and len(found) == count, (count, found)
+        found, open_ = _low_variants(logits, changes, c, scale)
+        assert found is not None and not open_ and len(found) == count, (count, found)
         with torch.inference_mode():
             for combo in found:
                 variant = image.clone()
@@ -329,7 +332,7 @@ def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_b
                         where, values = choices[r]
                         variant.view(3, -1)[:, where] = values
                 assert margin(model, variant, c)[0] <= scale + rounding
-    assert _low_variants(logits, changes, c, float(margins[70])) is None  # more than VARIANTS
+    assert _low_variants(logits, changes, c, float(margins[70]))[0] is None  # more than VARIANTS
 
 
 def test_a_group_with_too_many_images_is_boxed_and_no_image_below_the_margin_is_missed():
@@ -337,7 +340,7 @@ def test_a_group_with_too_many_images_is_boxed_and_no_image_below_the_margin_is_
     neighbours, each its colour or one a little off it (4,095 images, more than a group's changes
     are computed for), is one box bounded as a whole: at a threshold above the margin of any of
     the few pixels' 81 images, that image with the block changed may be below it too, so the
-    answer is open (None), never a list of images that misses one; below the bound of every
+    box is open, never left out of a list of images; below the bound of every
     image, nothing is open, and none of 4,000 images sampled over all sixteen pixels' choices
     (each classified whole) is below it."""
     torch.manual_seed(4)
@@ -358,8 +361,8 @@ def test_a_group_with_too_many_images_is_boxed_and_no_image_below_the_margin_is_
         c = int(logits.argmax())
         assert net.affine()
         groups = _groups(net, pixels, options)
-        boxed = [x for x in groups if isinstance(x, _Box)]
-        assert len(boxed) == 1 and sorted(boxed[0].pixels.tolist()) == block
+        boxed = [g for g, x in enumerate(groups) if isinstance(x[0], _Box)]
+        assert len(boxed) == 1 and sorted(groups[boxed[0]][0].pixels.tolist()) == block
         changes = [_change(net, x, c) for x in groups]
         picks = [rng.integers(0, len(o) + 1, 4000) for o in options]  # 0: the current colour
         samples = image.repeat(4000, 1, 1, 1)
@@ -376,11 +379,76 @@ def test_a_group_with_too_many_images_is_boxed_and_no_image_below_the_margin_is_
     rounding = 1e-6 * max(1.0, float(logits.abs().max()))  # float32 sums in another order
     for n in (1, 5, 10, 40):  # an image below: one the box's bound leaves open
         scale = float(levels[n - 1] + levels[n]) / 2
-        assert _low_variants(logits, changes, c, scale) is None
-    box = float(-changes[groups.index(boxed[0])].min())
+        assert _low_variants(logits, changes, c, scale)[1] == {(boxed[0], 0)}
+    box = float(-changes[boxed[0]][0].min())
     scale = float(levels[0]) - box - (float(levels[-1]) - float(levels[0])) - rounding
-    assert _low_variants(logits, changes, c, scale) == []  # below every bound: nothing open
+    assert _low_variants(logits, changes, c, scale) == ([], set())  # below every bound: nothing open
     assert (margins > scale + rounding).all()  # and no sampled image below it
+
+
+def test_a_box_split_until_its_bound_holds_gives_exactly_the_images_below_the_margin(monkeypatch):
+    """Beside two fragile pixels (each its colour or one of two others), a block of five
+    neighbours, each its colour or one of two others (242 images, a box where a group's changes
+    are computed for at most 64, whose bound over them all says little): the box split where its
+    bound leaves an image open, the images whose margin may be at most a threshold are those of
+    all 2,186 (each classified whole) below it, from none to dozens, up to float rounding; and a
+    box's parts hold its images between them, each once."""
+    monkeypatch.setattr(enumeration_method, "GROUP_VARIANTS", 64)
+    torch.manual_seed(4)
+    model = randomised(Local(), 4)
+    e = enumeration(3)
+    image = torch.from_numpy(e.images(len(e) // 2, len(e) // 2 + 1))
+    few = [5 * W + 5, 21 * W + 36]
+    block = [r * W + col for r in (14, 15) for col in (20, 21)] + [16 * W + 21]
+    pixels = np.array(few + block)
+    g = torch.Generator().manual_seed(1)
+    options = [[torch.rand(3, generator=g), torch.rand(3, generator=g)] for _ in pixels]
+    net = IncrementalNetwork.of(model)
+    with torch.inference_mode():
+        logits = net.start(image)[0].clone()
+        c = int(logits.argmax())
+        assert net.affine()
+        flat = image.view(3, -1)
+        every = []
+        for combo in itertools.product(*([None, *o] for o in options)):
+            if any(colour is not None for colour in combo):
+                variant = image.clone()
+                for p, colour in zip(pixels, combo, strict=True):
+                    if colour is not None:
+                        variant.view(3, -1)[:, p] = colour
+                every.append(variant)
+        margins = np.sort(margin(model, torch.cat(every), c))
+        groups = _groups(net, pixels, options)
+        box = next(x[0] for x in groups if isinstance(x[0], _Box))
+        assert sorted(box.pixels.tolist()) == block and box.count() == 3**5
+        parts, leaves = [box], []
+        while parts:
+            part = parts.pop()
+            made = _split(flat, part)
+            assert not (len(made) == 1 and made[0] is part)  # a box is always split
+            parts += [x for x in made if isinstance(x, _Box)]
+            leaves += [x for x in made if not isinstance(x, _Box)]
+        held = [tuple(flat[:, box.pixels].T.reshape(-1).tolist())]  # the current image
+        for where, values in leaves:
+            variant = flat[:, box.pixels].clone()
+            variant[:, np.searchsorted(box.pixels, where)] = values
+            held.append(tuple(variant.T.reshape(-1).tolist()))
+        assert len(held) == len(set(held)) == 3**5
+        rounding = 1e-6 * max(1.0, float(logits.abs().max()))  # float32 sums in another order
+        unsplit = _low_variants(logits, [_change(net, x, c) for x in groups], c, float(margins[0]) - 2 * rounding)
+        assert unsplit[1]  # the box's bound alone leaves an image open
+        for count in (0, 1, 5, 30):
+            scale = float(margins[count]) - 2 * rounding
+            found = _open_images(net, _groups(net, pixels, options), logits, c, scale)[0]
+            assert found is not None
+            alone = []
+            for where, values in found:
+                variant = image.clone()
+                variant.view(3, -1)[:, where] = values
+                alone.append(float(margin(model, variant, c)[0]))
+            assert len(set(map(tuple, (w.tolist() + v.reshape(-1).tolist() for w, v in found)))) == len(found)
+            assert (np.array(alone) <= scale + rounding).all()  # none above the threshold
+            assert len(found) >= int((margins < scale - rounding).sum())  # none below it missed
 
 
 def test_a_window_s_images_found_unit_by_unit_are_exactly_those_of_every_choice_of_its_units():

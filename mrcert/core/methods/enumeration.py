@@ -19,7 +19,9 @@ interval is therefore decided by those images alone, and this method decides it 
   pixels whose windows meet, :func:`_groups`; on a rotation the images of each recorded window
   unit by unit, each free point -- or line of twins along the rotation's axis -- in one of its
   pixels or shown nowhere, :func:`_point_groups`, with the records beside the windows pixel by
-  pixel); a group with too many images is one box, bounded as a whole (:class:`_Box`);
+  pixel); a group with too many images is one box, bounded as a whole (:class:`_Box`), and split
+  in two by one pixel's colours while its bound leaves an image below the margin open, down to
+  boxes of a few images, classified (:func:`_open_images`, within :data:`BOX_BOUNDS`);
 * optionally (``run_images`` below the number of images), a longer run first gets its exact hull
   -- per pixel and channel, the least and the greatest value the run's images take -- and bound
   propagation (:class:`~mrcert.core.verification.network.BoundNetwork`) proves ``y_c > y_j`` over
@@ -28,8 +30,8 @@ interval is therefore decided by those images alone, and this method decides it 
 Outcomes: **verified** (every image of the interval is classified ``c``: the radius is ``a``),
 **falsified** (an image classified otherwise, with the first float pose that renders it logged
 as the counterexample, checked by rendering and classifying that pose alone), **unknown** only
-when the budget (``max_bounds`` runs bounded) is spent or an image rounding may render is
-classified otherwise (or there are more than :data:`VARIANTS` of one image).
+when the budget (``max_bounds`` runs bounded, :data:`BOX_BOUNDS` boxes) is spent or an image
+rounding may render is classified otherwise (or there are more than :data:`VARIANTS` of one image).
 
 Guarantee: verified means ``h(O(V, alpha)) = c`` for every float64 ``|alpha| <= a`` on the axis,
 where ``h`` is the base classifier as it classifies one image (the bounds hold for it in exact
@@ -73,6 +75,16 @@ SPREAD = 33
 
 VARIANTS = 64
 """The most images rounding may render beside an enumerated one that are classified (then: unknown)."""
+
+BOX_IMAGES = 16
+"""A box split into its images once it holds at most this many (:func:`_split`)."""
+
+BOX_SPLIT = 65536
+"""The most images of a box that is split (:func:`_split`); a larger one left open is not."""
+
+BOX_BOUNDS = 256
+"""The most boxes bounded for one sample (:func:`_open_images`; then: unknown). A box's bound
+costs about one interval pass over the pixels it reaches."""
 
 GROUP_VARIANTS = 1024
 """An affine tail: the most such images of one group of fragile pixels near one another whose
@@ -159,6 +171,7 @@ class _Run:
         self.undecided = False  # an image rounding may render, classified otherwise (incremental pass)
         self.classified = 0
         self.bounded = 0
+        self.box_bounds = 0
         self.i = axis_index(self.m.axis)
 
     def motions(self, poses) -> torch.Tensor:
@@ -349,21 +362,22 @@ class _Run:
                         groups = [_joint(net, _point_groups(net, *e.free_points(w), table), beside)
                                   for w in windows] or [beside]  # fmt: skip
                         net.offsets(pixels, low, high, c)
-                    before = net.deltas
-                    changes = [[_change(net, choices, c) for choices in one] for one in groups]
-                    self.classified += net.deltas - before  # each change computed: a variant classified
-                    reach = net.reach()
-                    for one, change in zip(groups, changes, strict=True):
-                        low_ones = _low_variants(logits, change, c, scale)
-                        if low_ones is None:
+                    for one in groups:
+                        if not self.window_holds(e, k, net, one, logits, c, scale):
                             return False
-                        for combo in low_ones:
-                            picked = [one[g][r] for g, r in enumerate(combo) if r >= 0]
-                            where = np.concatenate([w for w, _ in picked])
-                            values = torch.cat([v for _, v in picked], 1)
-                            if self.variant_alone(e, k, where, values, c) < 0:
-                                return False
+                    reach = net.reach()
         return True
+
+    def window_holds(self, e: Enumeration, k: int, net: IncrementalNetwork, groups: list, logits: torch.Tensor,
+                     c: int, scale: float) -> bool:  # fmt: skip
+        """Whether every image of one window's ``groups`` beside image ``k`` whose margin may be
+        at most ``scale`` (:func:`_open_images`) is classified ``c`` on its own; not known once
+        :data:`BOX_BOUNDS` boxes have been bounded for the sample."""
+        before = net.deltas
+        images, bounds = _open_images(net, groups, logits, c, scale, BOX_BOUNDS - self.box_bounds)
+        self.classified += net.deltas - before  # each change computed: a variant classified
+        self.box_bounds += bounds
+        return images is not None and all(self.variant_alone(e, k, *image, c) >= 0 for image in images)
 
     def variant_alone(self, e: Enumeration, k: int, pixels: np.ndarray, values: torch.Tensor, c: int) -> float:
         """The margin of image ``k`` changed at ``pixels`` to ``values``, classified on its own."""
@@ -529,60 +543,95 @@ def _allowed(net: IncrementalNetwork, records: np.ndarray, table: torch.Tensor):
 
 @dataclass(frozen=True)
 class _Box:
-    """A group of pixels with too many images to classify: per pixel and channel, the least and
-    the greatest value any of them gives it (C, n), the current one included; an interval bound
-    over the box stands for them all."""
+    """Images of a group of pixels too many to classify: every pixel one of its ``choices``
+    (C, m) (the current colour among them), in every combination; ``low`` and ``high`` (C, n),
+    per pixel and channel, the least and the greatest of them. An interval bound over the box
+    stands for them all; a box may be split into boxes of fewer images (:func:`_split`)."""
 
     pixels: np.ndarray
+    choices: tuple[torch.Tensor, ...]
     low: torch.Tensor
     high: torch.Tensor
+
+    @classmethod
+    def of(cls, pixels: np.ndarray, choices) -> _Box:
+        choices = tuple(choices)
+        return cls(pixels, choices, torch.stack([x.min(1).values for x in choices], 1),
+                   torch.stack([x.max(1).values for x in choices], 1))  # fmt: skip
+
+    def count(self) -> float:
+        """How many images the box holds."""
+        return float(np.prod([x.shape[1] for x in self.choices], dtype=float))
 
 
 def _groups(net: IncrementalNetwork, pixels: np.ndarray, options: list) -> list:
     """The fragile pixels in groups that reach disjoint boxes of the affine tail's first layer,
     each group's images beside the current one as (pixels changed, their colours (C, n)) (as
-    :func:`_combinations`), or a :class:`_Box` where a group has more than :data:`GROUP_VARIANTS`
+    :func:`_combinations`), or one :class:`_Box` where a group has more than :data:`GROUP_VARIANTS`
     images. A change of one group leaves the values the others reach as they are, so (the tail
     being affine) the logits of any image the records allow are the current ones plus one change
     per group."""
     groups: list = []
     for js in _clusters([net.boundary_box(pixels[j : j + 1]) for j in range(len(pixels))]):
         choices = _combinations(pixels[js], [options[j] for j in js], GROUP_VARIANTS)
-        groups.append(_boxed(net, [[(pixels[j : j + 1], o[:, None]) for o in options[j]] for j in js])
+        groups.append([_boxed(net, [[(pixels[j : j + 1], o[:, None]) for o in options[j]] for j in js])]
                       if choices is None else choices)  # fmt: skip
     return groups
 
 
 def _boxed(net: IncrementalNetwork, groups: list) -> _Box:
-    """One box over ``groups`` (each a list of images as (pixels, their colours (C, n)), or a
+    """One box over ``groups`` (each a list of images as (pixels, their colours (C, n)), or of
     :class:`_Box`): per pixel, the current colour and every colour a group may give it."""
     current = net.values[0].reshape(net.values[0].shape[1], -1).cpu()
-    low: dict[int, torch.Tensor] = {}
-    high: dict[int, torch.Tensor] = {}
+    choices: dict[int, list[torch.Tensor]] = {}
 
-    def widen(pixels: np.ndarray, lo: torch.Tensor, hi: torch.Tensor) -> None:
+    def add(pixels: np.ndarray, colours) -> None:
         for j, p in enumerate(pixels.tolist()):
-            if p not in low:
-                low[p], high[p] = current[:, p].clone(), current[:, p].clone()
-            low[p] = torch.minimum(low[p], lo[:, j].to(current.dtype))
-            high[p] = torch.maximum(high[p], hi[:, j].to(current.dtype))
+            have = choices.setdefault(p, [current[:, p].clone()])
+            for colour in colours(j):
+                colour = colour.to(current.dtype)
+                if not any(torch.equal(colour, h) for h in have):
+                    have.append(colour)
 
     for group in groups:
-        if isinstance(group, _Box):
-            widen(group.pixels, group.low, group.high)
-        else:
-            for pixels, values in group:
-                widen(pixels, values, values)
-    where = sorted(low)
-    return _Box(np.array(where, np.int64), torch.stack([low[p] for p in where], 1),
-                torch.stack([high[p] for p in where], 1))  # fmt: skip
+        for part in group:
+            if isinstance(part, _Box):
+                add(part.pixels, lambda j, part=part: part.choices[j].T)
+            else:
+                add(part[0], lambda j, part=part: [part[1][:, j]])
+    where = sorted(choices)
+    return _Box.of(np.array(where, np.int64), [torch.stack(choices[p], 1) for p in where])
+
+
+def _split(current: torch.Tensor, part) -> list:
+    """A box (:class:`_Box`) as parts that hold its images between them: its images beside the
+    current one (``current`` (C, H*W), the image's colours) as (pixels changed, their colours)
+    where it holds at most :data:`BOX_IMAGES`, else two boxes, the pixel of the widest choices
+    in one half of its choices or the other. An image is left as it is."""
+    if not isinstance(part, _Box):
+        return [part]
+    box = part
+    now = current[:, torch.from_numpy(box.pixels)]
+    if box.count() <= BOX_IMAGES:
+        out = []
+        for combo in itertools.product(*(range(x.shape[1]) for x in box.choices)):
+            colours = torch.stack([x[:, r] for x, r in zip(box.choices, combo, strict=True)], 1)
+            changed = (colours != now.to(colours.dtype)).any(0).numpy()
+            if changed.any():
+                out.append((box.pixels[changed], colours[:, torch.from_numpy(changed)].contiguous()))
+        return out
+    widths = [float((x.max(1).values - x.min(1).values).sum()) if x.shape[1] > 1 else -1.0 for x in box.choices]
+    j = int(np.argmax(widths))
+    x = box.choices[j]
+    order = torch.argsort(x.sum(0))  # by brightness: each half's colours near one another
+    halves = (x[:, order[: x.shape[1] // 2]], x[:, order[x.shape[1] // 2 :]])
+    return [_Box.of(box.pixels, (*box.choices[:j], half, *box.choices[j + 1 :])) for half in halves]
 
 
 def _pixels_of(group) -> np.ndarray:
-    """Every pixel a group (its images, or a :class:`_Box`) may change."""
-    if isinstance(group, _Box):
-        return group.pixels
-    return np.unique(np.concatenate([pixels for pixels, _ in group])) if group else np.empty(0, np.int64)
+    """Every pixel a group (its images and boxes) may change."""
+    pixels = [part.pixels if isinstance(part, _Box) else part[0] for part in group]
+    return np.unique(np.concatenate(pixels)) if pixels else np.empty(0, np.int64)
 
 
 def _joint(net: IncrementalNetwork, own: list, beside: list) -> list:
@@ -598,7 +647,7 @@ def _joint(net: IncrementalNetwork, own: list, beside: list) -> list:
     for i in range(len(own)):
         for j in range(len(own), len(parts)):
             meet[i, j] = len(boxes[i]) > 0 and len(boxes[j]) > 0 and bool(_box_meets(boxes[i], boxes[j]).any())
-    return [parts[js[0]] if len(js) == 1 else _boxed(net, [parts[j] for j in js]) for js in _components(meet)]
+    return [parts[js[0]] if len(js) == 1 else [_boxed(net, [parts[j] for j in js])] for js in _components(meet)]
 
 
 def _pixel_boxes(net: IncrementalNetwork, pixels: np.ndarray) -> np.ndarray:
@@ -624,12 +673,20 @@ def _components(meet: np.ndarray) -> list[list[int]]:
     return list(members.values())
 
 
-def _change(net: IncrementalNetwork, group, c: int) -> torch.Tensor:
-    """A group's changes for :func:`_low_variants`: of the logits, one row per image (n, K); of a
-    :class:`_Box`, per class ``j`` the least change of ``y_c - y_j`` over it (K,)."""
-    if isinstance(group, _Box):
-        return net.offsets(group.pixels, group.low, group.high, c).cpu()
-    return torch.cat([net.delta(w, v) for w, v in group])
+def _change(net: IncrementalNetwork, group: list, c: int) -> tuple[torch.Tensor, set[int]]:
+    """A group's changes for :func:`_low_variants`: per part, one row (n, K) of the change of
+    each margin ``y_c - y_j`` -- an image's exactly, a :class:`_Box`'s the least over it -- and
+    which rows are boxes."""
+    rows, boxes = [], set()
+    K = net.values[net.output].shape[1]
+    for r, part in enumerate(group):
+        if isinstance(part, _Box):
+            rows.append(net.offsets(part.pixels, part.low, part.high, c).double().cpu())
+            boxes.add(r)
+        else:
+            d = net.delta(*part)[0].double().cpu()
+            rows.append(d[c] - d)
+    return (torch.stack(rows) if rows else torch.zeros(0, K, dtype=torch.float64)), boxes
 
 
 def _point_groups(
@@ -687,7 +744,7 @@ def _point_groups(
         pix = np.array(where, np.int64)
         if len(states) > GROUP_VARIANTS:  # every point that may show at each pixel, boxed
             shows = [(pix[x : x + 1], table[q][:, None]) for x, p in enumerate(where) for q in ranked[p]]
-            groups.append(_boxed(net, [shows]))
+            groups.append([_boxed(net, [shows])])
             continue
         groups.append([(pix, table[[ranked[p][i] for p, i in zip(where, s, strict=True)]].T.contiguous())
                        for s in sorted(states)])  # fmt: skip
@@ -706,22 +763,61 @@ def _clusters(boxes: list) -> list[list[int]]:
     return _components(meet)
 
 
-def _low_variants(logits: torch.Tensor, changes: list[torch.Tensor], c: int, scale: float) -> list[tuple] | None:
-    """The images, one choice per group (row ``r`` of its changes, -1 for none; not all none),
-    whose margin -- the logits (K,) plus the chosen rows of each group's changes (n_g, K) -- is at
-    most ``scale``: found group by group, a partial choice dropped as soon as even the least
-    changes of the groups left keep every class's margin above ``scale``. A box's changes (K,) are
-    the least change of each margin over it (:func:`_change`), not an image's: None where a
-    margin at most ``scale`` needs one, or where there are more than :data:`VARIANTS`."""
+def _open_images(
+    net: IncrementalNetwork, groups: list, logits: torch.Tensor, c: int, scale: float, budget: int = BOX_BOUNDS
+) -> tuple[list | None, int]:
+    """The images of one window's ``groups`` (their changes add) beside the current one whose
+    margin may be at most ``scale``, as (pixels changed, their colours (C, n)), each to be
+    classified on its own (:func:`_low_variants`); every other image of the groups has a margin
+    above ``scale``. A box whose bound leaves such an image open is split (:func:`_split`) in
+    place, so that later images of the window start from the finer groups. None where there
+    are more than :data:`VARIANTS`, or more than ``budget`` boxes would be bounded; and how many
+    boxes were bounded."""
+    bounds = 0
+    while True:
+        bounds += sum(isinstance(part, _Box) for group in groups for part in group)
+        if bounds > budget:
+            return None, bounds
+        low_ones, open_ = _low_variants(logits, [_change(net, group, c) for group in groups], c, scale)
+        if low_ones is None:
+            return None, bounds
+        if not open_:
+            break
+        if any(groups[g][r].count() > BOX_SPLIT for g, r in open_):
+            return None, bounds
+        current = net.values[0].reshape(net.values[0].shape[1], -1).cpu()
+        for g in sorted({g for g, _ in open_}):
+            split = {r for h, r in open_ if h == g}
+            parts = [_split(current, part) if r in split else [part] for r, part in enumerate(groups[g])]
+            groups[g] = [x for made in parts for x in made]
+    images = []
+    for combo in low_ones:
+        picked = [groups[g][r] for g, r in enumerate(combo) if r >= 0]
+        images.append((np.concatenate([w for w, _ in picked]), torch.cat([v for _, v in picked], 1)))
+    return images, bounds
+
+
+def _low_variants(
+    logits: torch.Tensor, changes: list[tuple[torch.Tensor, set[int]]], c: int, scale: float
+) -> tuple[list[tuple] | None, set[tuple[int, int]]]:
+    """The images, one part per group (row ``r`` of its changes, -1 for none; not all none),
+    whose margin -- the logits (K,) plus the chosen rows of each group's changes (n_g, K, as
+    :func:`_change`) -- is at most ``scale``: found group by group, a partial choice dropped as
+    soon as even the least changes of the groups left keep every class's margin above ``scale``.
+    A box's row is a bound, not an image's change: a choice of one whose margin bound is at most
+    ``scale`` leaves those images open, and the second answer names such boxes (group, row), up
+    to :data:`VARIANTS` choices of them. The images are None where there are more than
+    :data:`VARIANTS`; they are all only where nothing is open."""
     base = (logits[c] - logits).double().cpu()
     zero = torch.zeros(1, len(base), dtype=torch.float64)
-    rows = [torch.cat([zero, d.double().cpu()[None] if d.ndim == 1 else (d[:, c : c + 1] - d).double().cpu()])
-            for d in changes]  # fmt: skip
-    boxes = {g for g, d in enumerate(changes) if d.ndim == 1}
+    rows = [torch.cat([zero, d]) for d, _ in changes]
+    boxes = [{r + 1 for r in b} for _, b in changes]
     rest = [torch.zeros(len(base), dtype=torch.float64)]
     for m in reversed(rows):
         rest.insert(0, rest[0] + m.min(0).values)
     found: set[tuple] = set()
+    open_: set[tuple[int, int]] = set()
+    opened = 0
     for j in range(len(base)):
         if j == c or float(base[j] + rest[0][j]) > scale:
             continue
@@ -729,17 +825,21 @@ def _low_variants(logits: torch.Tensor, changes: list[torch.Tensor], c: int, sca
         while stack:
             g, total, combo = stack.pop()
             if g == len(rows):
-                if any(combo[b] > 0 for b in boxes):  # a bound, not an image, leaves it open
-                    return None
-                if any(r > 0 for r in combo):
+                boxed = [(h, r - 1) for h, r in enumerate(combo) if r in boxes[h]]
+                if boxed:
+                    open_.update(boxed)
+                    opened += 1
+                    if opened > VARIANTS:
+                        return sorted(found), open_  # the boxes first
+                elif any(r > 0 for r in combo):
                     found.add(tuple(r - 1 for r in combo))
                     if len(found) > VARIANTS:
-                        return None
+                        return None, open_
                 continue
             for r in range(len(rows[g])):
                 if total + float(rows[g][r, j] + rest[g + 1][j]) <= scale:
                     stack.append((g + 1, total + float(rows[g][r, j]), (*combo, r)))
-    return sorted(found)
+    return sorted(found), open_
 
 
 def _combinations(
