@@ -83,7 +83,7 @@ learning-curve: $(STAMP) ## the learning curve: test accuracy by training poses,
 	$(MRCERT) -m experiment=learning_curve_resnet18 task=train
 	$(PAGE_TABLES)
 
-test: $(STAMP) ## the fast test suite (10-23 min on 2 cores): one pytest worker per thread, test files shared out
+test: $(STAMP) ## the fast test suite (about 12 min on 2 cores): one pytest worker per thread, test files shared out
 	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -q -n $(THREADS) --dist loadfile
 
 test-full: $(STAMP) ## every test, the slow ones too
