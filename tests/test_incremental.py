@@ -287,6 +287,20 @@ class Local(nn.Module):
         return self.head(torch.flatten(F.adaptive_avg_pool2d(self.body(x), 1), 1))
 
 
+def every_image(image: torch.Tensor, pixels: np.ndarray, options: list) -> torch.Tensor:
+    """Every image (V, 3, H, W) beside ``image`` (1, 3, H, W) with each of ``pixels`` its own
+    colour or one of its ``options``, not all their own."""
+    every = []
+    for combo in itertools.product(*([None, *o] for o in options)):
+        if any(colour is not None for colour in combo):
+            variant = image.clone()
+            for p, colour in zip(pixels, combo, strict=True):
+                if colour is not None:
+                    variant.view(3, -1)[:, p] = colour
+            every.append(variant)
+    return torch.cat(every)
+
+
 @pytest.mark.parametrize("name", ["local", "residual"])
 def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_below_the_margin(name):
     """Fragile pixels (neighbours and loners far apart, each its colour or one of two others):
@@ -307,15 +321,7 @@ def test_the_variants_of_fragile_pixels_found_group_by_group_are_exactly_those_b
         groups = _groups(net, pixels, options)
         assert 1 < len(groups) < len(pixels)  # neighbours share a group, loners do not
         changes = [_change(net, choices, c) for choices in groups]
-        every = []  # every image the pixels allow, classified whole
-        for combo in itertools.product(*([None, *o] for o in options)):
-            if any(colour is not None for colour in combo):
-                variant = image.clone()
-                for p, colour in zip(pixels, combo, strict=True):
-                    if colour is not None:
-                        variant.view(3, -1)[:, p] = colour
-                every.append(variant)
-        margins = np.sort(margin(model, torch.cat(every), c))
+        margins = np.sort(margin(model, every_image(image, pixels, options), c))  # each classified whole
     rounding = 1e-6 * max(1.0, float(np.abs(logits).max()))  # float32 sums in another order
     gaps = np.nonzero(np.diff(margins) > 2 * rounding)[0] + 1  # thresholds far from any margin
     for least in (1, 7, 40):
@@ -409,15 +415,7 @@ def test_a_box_split_until_its_bound_holds_gives_exactly_the_images_below_the_ma
         c = int(logits.argmax())
         assert net.affine()
         flat = image.view(3, -1)
-        every = []
-        for combo in itertools.product(*([None, *o] for o in options)):
-            if any(colour is not None for colour in combo):
-                variant = image.clone()
-                for p, colour in zip(pixels, combo, strict=True):
-                    if colour is not None:
-                        variant.view(3, -1)[:, p] = colour
-                every.append(variant)
-        margins = np.sort(margin(model, torch.cat(every), c))
+        margins = np.sort(margin(model, every_image(image, pixels, options), c))  # each classified whole
         groups = _groups(net, pixels, options)
         box = next(x[0] for x in groups if isinstance(x[0], _Box))
         assert sorted(box.pixels.tolist()) == block and box.count() == 3**5
