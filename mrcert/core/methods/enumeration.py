@@ -585,32 +585,27 @@ def _boxed(net: IncrementalNetwork, groups: list) -> _Box:
     current = net.values[0].reshape(net.values[0].shape[1], -1).cpu()
     choices: dict[int, list[torch.Tensor]] = {}
 
-    def add(pixels: np.ndarray, colours) -> None:
-        for j, p in enumerate(pixels.tolist()):
-            have = choices.setdefault(p, [current[:, p].clone()])
-            for colour in colours(j):
-                colour = colour.to(current.dtype)
-                if not any(torch.equal(colour, h) for h in have):
-                    have.append(colour)
+    def add(p: int, colours: torch.Tensor) -> None:  # colours (C, m)
+        have = choices.setdefault(p, [current[:, p].clone()])
+        for colour in colours.T.to(current.dtype):
+            if not any(torch.equal(colour, h) for h in have):
+                have.append(colour)
 
     for group in groups:
         for part in group:
-            if isinstance(part, _Box):
-                add(part.pixels, lambda j, part=part: part.choices[j].T)
-            else:
-                add(part[0], lambda j, part=part: [part[1][:, j]])
+            box = isinstance(part, _Box)
+            pixels, colours = (part.pixels, part.choices) if box else (part[0], part[1].T[..., None])
+            for p, x in zip(pixels.tolist(), colours, strict=True):
+                add(p, x)
     where = sorted(choices)
     return _Box.of(np.array(where, np.int64), [torch.stack(choices[p], 1) for p in where])
 
 
-def _split(current: torch.Tensor, part) -> list:
-    """A box (:class:`_Box`) as parts that hold its images between them: its images beside the
-    current one (``current`` (C, H*W), the image's colours) as (pixels changed, their colours)
-    where it holds at most :data:`BOX_IMAGES`, else two boxes, the pixel of the widest choices
-    in one half of its choices or the other. An image is left as it is."""
-    if not isinstance(part, _Box):
-        return [part]
-    box = part
+def _split(current: torch.Tensor, box: _Box) -> list:
+    """A box as parts that hold its images between them: its images beside the current one
+    (``current`` (C, H*W), the image's colours) as (pixels changed, their colours) where it holds
+    at most :data:`BOX_IMAGES`, else two boxes, the pixel of the widest choices in one half of its
+    choices or the other."""
     now = current[:, torch.from_numpy(box.pixels)]
     if box.count() <= BOX_IMAGES:
         out = []
@@ -830,7 +825,7 @@ def _low_variants(
                     open_.update(boxed)
                     opened += 1
                     if opened > VARIANTS:
-                        return sorted(found), open_  # the boxes first
+                        return sorted(found), open_  # enough open boxes: split them before going on
                 elif any(r > 0 for r in combo):
                     found.add(tuple(r - 1 for r in combo))
                     if len(found) > VARIANTS:
